@@ -1,0 +1,91 @@
+"""`phim bench model`: per-sector latency of the streaming model with its buffer loaded."""
+
+from __future__ import annotations
+
+import resource
+import statistics
+import time
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import Tensor
+
+from model.detector import PHiM
+from model.sectors import split_turn
+from model.stream import StreamingDetector
+
+
+@dataclass(frozen=True)
+class ModelBench:
+    config: str
+    device: str
+    threads: int
+    batch: int  # streams per forward
+    sectors_per_turn: int
+    points_per_sector: list[int]
+    iterations: int  # timed steps
+    p50_ms: float
+    p90_ms: float
+    mean_ms: float
+    per_sector_p50_ms: list[float]
+    peak_mem_mb: float  # CUDA: max allocated during the timed steps; CPU: peak process RSS
+    full_turn_peak_mem_mb: float | None  # CUDA only: one whole-turn pass, batch 1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+def _full_turn_peak(model: PHiM, sectors: list[Tensor]) -> float | None:
+    dev = model.device
+    if dev.type != "cuda":
+        return None
+    torch.cuda.reset_peak_memory_stats(dev)
+    with torch.inference_mode():
+        model.forward_turn([s.to(dev) for s in sectors])
+    _sync(dev)
+    return torch.cuda.max_memory_allocated(dev) / 2**20
+
+
+def bench_model(model: PHiM, turn: Tensor, batch: int = 1, turns: int = 10, warmup_turns: int = 2) -> ModelBench:
+    """Stream `turn` (N, C) split into sectors, `batch` streams at once; time every step after warm-up."""
+    det = StreamingDetector(model)
+    dev = det.device
+    cfg = model.cfg
+    sectors = [s.to(dev) for s in split_turn(turn, cfg.sectors_per_turn)]
+    states = [det.init_state() for _ in range(batch)]
+    times: dict[int, list[float]] = {k: [] for k in range(len(sectors))}
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+    for t in range(warmup_turns + turns):
+        for k, sector in enumerate(sectors):
+            _sync(dev)
+            t0 = time.perf_counter()
+            _, states = det.step([sector] * batch, states)
+            _sync(dev)
+            if t >= warmup_turns:
+                times[k].append((time.perf_counter() - t0) * 1e3)
+    if dev.type == "cuda":
+        peak = torch.cuda.max_memory_allocated(dev) / 2**20
+    else:
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    all_ms = sorted(x for v in times.values() for x in v)
+    return ModelBench(
+        config=cfg.name,
+        device=str(dev) if dev.type == "cpu" else torch.cuda.get_device_name(dev),
+        threads=torch.get_num_threads(),
+        batch=batch,
+        sectors_per_turn=len(sectors),
+        points_per_sector=[int(s.shape[0]) for s in sectors],
+        iterations=len(all_ms),
+        p50_ms=round(statistics.median(all_ms), 2),
+        p90_ms=round(all_ms[int(0.9 * (len(all_ms) - 1))], 2),
+        mean_ms=round(statistics.fmean(all_ms), 2),
+        per_sector_p50_ms=[round(statistics.median(v), 2) for v in times.values()],
+        peak_mem_mb=round(peak, 1),
+        full_turn_peak_mem_mb=_full_turn_peak(model, sectors),
+    )

@@ -1,0 +1,98 @@
+"""Checkpoints: weights together with the config that built them.
+
+File layout (torch.save of plain data, loadable with weights_only=True, never arbitrary pickles):
+    {"format": "phim-checkpoint", "version": 1, "config": PHiMConfig as plain dict,
+     "state_dict": {...}, "meta": {...free-form plain data...}}
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from model.config import PHiMConfig
+from model.detector import PHiM
+
+FORMAT = "phim-checkpoint"
+VERSION = 1
+
+
+class CheckpointError(ValueError):
+    pass
+
+
+def plain_config(cfg: PHiMConfig) -> dict[str, Any]:
+    """Config as JSON-able plain data (enums as strings, tuples as lists)."""
+    return json.loads(json.dumps(cfg.to_dict()))
+
+
+def save_checkpoint(path: str | Path, model: PHiM, meta: dict[str, Any] | None = None) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "config": plain_config(model.cfg),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "meta": meta or {},
+    }
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+
+
+def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
+    """Dotted field names whose values differ between two plain config dicts."""
+    out = []
+    for key in sorted(set(a) | set(b)):
+        name = f"{prefix}{key}"
+        va, vb = a.get(key), b.get(key)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += config_diff(va, vb, name + ".")
+        elif va != vb:
+            out.append(f"{name}: checkpoint has {va!r}, expected {vb!r}")
+    return out
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path}: no such file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several types for corrupt files
+        raise CheckpointError(f"checkpoint {path}: unreadable ({e})") from e
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"checkpoint {path}: not a {FORMAT} file")
+    if payload.get("version") != VERSION:
+        raise CheckpointError(f"checkpoint {path}: version {payload.get('version')}, expected {VERSION}")
+    return payload
+
+
+def load_checkpoint(
+    path: str | Path, expected: PHiMConfig | None = None, device: str | torch.device = "cpu"
+) -> PHiM:
+    """Build the model from the checkpoint's own config and load its weights.
+
+    With `expected`, a checkpoint whose config differs raises CheckpointError naming every differing field.
+    """
+    payload = read_checkpoint(path)
+    if expected is not None:
+        diff = config_diff(payload["config"], plain_config(expected))
+        if diff:
+            raise CheckpointError(f"checkpoint {path}: config mismatch: " + "; ".join(diff))
+    cfg = PHiMConfig.from_dict(payload["config"])
+    model = PHiM(cfg)
+    try:
+        result = model.load_state_dict(payload["state_dict"], strict=False)
+    except RuntimeError as e:  # shape mismatches
+        raise CheckpointError(f"checkpoint {path}: weights do not fit config {cfg.name!r}: {e}") from e
+    if result.missing_keys or result.unexpected_keys:
+        raise CheckpointError(
+            f"checkpoint {path}: weights do not fit config {cfg.name!r}: "
+            f"missing {result.missing_keys[:5]}, unexpected {result.unexpected_keys[:5]}"
+        )
+    return model.to(device)

@@ -1,0 +1,93 @@
+"""`phim model ...` and `phim bench model` commands."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import torch
+import typer
+
+from model.config import CONFIGS, get_config
+from model.runtime import pick_device, tune_malloc
+from model.sectors import load_kitti_bin
+from model.synthetic import synthetic_turn
+
+REPO = Path(__file__).resolve().parents[1]
+KITTI_000000 = REPO.parent / "shared" / "data" / "kitti_object" / "velodyne" / "000000.bin"
+
+model_app = typer.Typer(help="Inspect model configs.", no_args_is_help=True)
+bench_app = typer.Typer(help="Benchmarks (a table or JSON at the end).", no_args_is_help=True)
+
+ConfigOpt = Annotated[str, typer.Option("--config", help=f"model config: {', '.join(CONFIGS)}")]
+PointsOpt = Annotated[
+    Path | None,
+    typer.Option("--points", help="a KITTI-style float32 (N,4) .bin scan; default: KITTI 000000 if present"),
+]
+
+
+def _load_turn(points: Path | None, fallback_kitti: bool) -> tuple[torch.Tensor, str]:
+    if points is not None:
+        return load_kitti_bin(str(points)), str(points)
+    if fallback_kitti and KITTI_000000.is_file():
+        return load_kitti_bin(str(KITTI_000000)), str(KITTI_000000)
+    return synthetic_turn(seed=0), "synthetic_turn(seed=0)"
+
+
+@model_app.command("info")
+def info(
+    config: ConfigOpt = "paper",
+    points: PointsOpt = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
+) -> None:
+    """Parameter count and measured GFLOPs of a config (FLOPs counted on a real forward)."""
+    from model.info import model_info
+
+    tune_malloc()
+    turn, source = _load_turn(points, fallback_kitti=False)
+    result = model_info(get_config(config), turn).to_dict()
+    result["input"] = source
+    if as_json:
+        typer.echo(json.dumps(result))
+        return
+    for key, value in result.items():
+        typer.echo(f"{key:>24}  {value}")
+
+
+@bench_app.command("model")
+def bench_model_cmd(
+    config: ConfigOpt = "tiny",
+    points: PointsOpt = None,
+    device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "auto",
+    batch: Annotated[int, typer.Option(help="streams per forward")] = 1,
+    turns: Annotated[int, typer.Option(help="timed turns")] = 10,
+    threads: Annotated[int, typer.Option(help="torch CPU threads (0: leave as is)")] = 0,
+    checkpoint: Annotated[Path | None, typer.Option(help="weights to load (default: fresh init)")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
+) -> None:
+    """Time one sector at a time of a scan, with the sector buffer loaded."""
+    from model.bench import bench_model
+    from model.checkpoint import load_checkpoint
+    from model.detector import PHiM
+
+    logging.basicConfig(level=logging.WARNING)
+    tune_malloc()
+    if threads:
+        torch.set_num_threads(threads)
+    dev = pick_device(device)
+    cfg = get_config(config)
+    model = load_checkpoint(checkpoint, cfg, dev) if checkpoint else PHiM(cfg).to(dev)
+    turn, source = _load_turn(points, fallback_kitti=True)
+    result = bench_model(model, turn, batch=batch, turns=turns).to_dict()
+    result["input"] = source
+    if as_json:
+        typer.echo(json.dumps(result))
+        return
+    typer.echo(f"input: {source}")
+    for key in ("config", "device", "threads", "batch", "points_per_sector", "iterations"):
+        typer.echo(f"{key:>24}  {result[key]}")
+    typer.echo("\n| metric | value |\n|---|---|")
+    for key in ("p50_ms", "p90_ms", "mean_ms", "per_sector_p50_ms", "peak_mem_mb", "full_turn_peak_mem_mb"):
+        typer.echo(f"| {key} | {result[key]} |")

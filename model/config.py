@@ -1,0 +1,219 @@
+"""Model configuration: one frozen dataclass per part, composed into `PHiMConfig`.
+
+Two named configurations exist: `paper()` (the paper's Waymo settings) and `tiny()` (same architecture,
+small enough to run at sensor rate on a 2-core CPU). Every choice the paper leaves open is a field here and
+is explained in docs/model.md.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import asdict, dataclass, field
+
+CLASS_NAMES: tuple[str, ...] = ("VEHICLE", "PEDESTRIAN", "CYCLIST")
+
+
+class ScanImpl(enum.StrEnum):
+    """Which selective-scan implementation the Mamba layers use."""
+
+    REFERENCE = "reference"  # sequential loop per sequence; slow, the ground truth
+    CHUNKED = "chunked"  # packed ragged chunks, closed-form carry between chunks; CPU and CUDA
+
+
+@dataclass(frozen=True)
+class PolarGridConfig:
+    """Cylindrical voxel grid (r, theta, z). theta covers [-pi, pi) in `theta_bins` bins."""
+
+    r_bins: int
+    theta_bins: int
+    z_bins: int
+    r_min: float  # metres; points closer are dropped (ego returns)
+    r_max: float  # metres; points farther are dropped
+    z_min: float  # metres, sensor frame
+    z_max: float
+
+    @property
+    def r_size(self) -> float:
+        return (self.r_max - self.r_min) / self.r_bins
+
+    @property
+    def theta_size(self) -> float:
+        return 2 * math.pi / self.theta_bins
+
+    @property
+    def z_size(self) -> float:
+        return (self.z_max - self.z_min) / self.z_bins
+
+
+@dataclass(frozen=True)
+class VFEConfig:
+    """Dynamic voxel feature encoder: per-point MLP, then mean + max scatter pooling per voxel."""
+
+    point_features: int = 4  # x, y, z, intensity[, elongation]
+    hidden: tuple[int, ...] = (32,)
+
+
+@dataclass(frozen=True)
+class MambaConfig:
+    d_state: int = 16
+    d_conv: int = 4
+    expand: int = 2
+    dt_rank: int = 0  # 0 means ceil(d_model / 16), as in mamba_simple.py
+    dt_min: float = 0.001
+    dt_max: float = 0.1
+    dt_init_floor: float = 1e-4
+    scan: ScanImpl = ScanImpl.CHUNKED
+    chunk_size: int = 32
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    """PHiM 3D backbone: one PHiM block per entry of `down_strides` / `down_kernels`."""
+
+    d_model: int = 128
+    down_strides: tuple[int, ...] = (1, 1, 1, 2, 1, 4)
+    down_kernels: tuple[int, ...] = (3, 3, 3, 3, 3, 5)
+    frustum_theta_bins: int = 9  # azimuth bins per frustum of the local Mamba
+    mamba: MambaConfig = field(default_factory=MambaConfig)
+
+    def __post_init__(self) -> None:
+        if len(self.down_strides) != len(self.down_kernels):
+            raise ValueError("down_strides and down_kernels must have the same length (one per PHiM block)")
+
+
+@dataclass(frozen=True)
+class BEVConfig:
+    """Cartesian BEV grid and the PillarNeXt-style residual BEV backbone."""
+
+    x_min: float
+    x_max: float
+    y_min: float
+    y_max: float
+    cell: float  # metres per BEV cell (square)
+    layer_nums: tuple[int, ...] = (1, 2, 2)
+    layer_strides: tuple[int, ...] = (1, 2, 2)
+    num_filters: tuple[int, ...] = (128, 128, 256)
+    upsample_strides: tuple[int, ...] = (1, 2, 4)
+    num_upsample_filters: tuple[int, ...] = (128, 128, 128)
+
+    @property
+    def nx(self) -> int:
+        return round((self.x_max - self.x_min) / self.cell)
+
+    @property
+    def ny(self) -> int:
+        return round((self.y_max - self.y_min) / self.cell)
+
+
+@dataclass(frozen=True)
+class HeadConfig:
+    """CenterPoint head and decoding."""
+
+    class_names: tuple[str, ...] = CLASS_NAMES
+    shared_channels: int = 64
+    head_channels: int = 64
+    head_convs: int = 2  # conv layers per regression branch, the last one is the output
+    nms_iou: tuple[float, ...] = (0.75, 0.6, 0.55)  # per class, BEV rotated IoU
+    score_threshold: float = 0.1
+    pre_nms_top_k: int = 4096
+    post_nms_top_k: int = 500
+    iou_rectifier: tuple[float, ...] = (0.68, 0.71, 0.65)  # score = hm^(1-a) * iou^a, per class
+
+    def __post_init__(self) -> None:
+        n = len(self.class_names)
+        if len(self.nms_iou) != n or len(self.iou_rectifier) != n:
+            raise ValueError("nms_iou and iou_rectifier need one value per class")
+
+
+@dataclass(frozen=True)
+class PHiMConfig:
+    name: str
+    grid: PolarGridConfig
+    vfe: VFEConfig
+    backbone: BackboneConfig
+    bev: BEVConfig
+    head: HeadConfig
+    sectors_per_turn: int = 4
+    buffer_sectors: int = 3  # sectors kept per stream besides the new one (n - 1)
+
+    def __post_init__(self) -> None:
+        per_sector, rem = divmod(self.grid.theta_bins, self.sectors_per_turn)
+        if rem:
+            raise ValueError("theta_bins must be a multiple of sectors_per_turn")
+        if per_sector % self.backbone.frustum_theta_bins:
+            raise ValueError("theta bins per sector must be a multiple of frustum_theta_bins")
+        if self.buffer_sectors < 0:
+            raise ValueError("buffer_sectors must be >= 0")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> PHiMConfig:
+        b = dict(d["backbone"])
+        b["mamba"] = MambaConfig(**{**b["mamba"], "scan": ScanImpl(b["mamba"]["scan"])})
+        return PHiMConfig(
+            name=d["name"],
+            grid=PolarGridConfig(**d["grid"]),
+            vfe=VFEConfig(**_tuples(d["vfe"])),
+            backbone=BackboneConfig(**_tuples(b)),
+            bev=BEVConfig(**_tuples(d["bev"])),
+            head=HeadConfig(**_tuples(d["head"])),
+            sectors_per_turn=d["sectors_per_turn"],
+            buffer_sectors=d["buffer_sectors"],
+        )
+
+
+def _tuples(d: dict) -> dict:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
+
+def paper() -> PHiMConfig:
+    """The paper's Waymo settings (Sec. 4 and appendix B)."""
+    return PHiMConfig(
+        name="paper",
+        grid=PolarGridConfig(r_bins=468, theta_bins=468, z_bins=32, r_min=0.0, r_max=74.88, z_min=-2.0, z_max=4.0),
+        vfe=VFEConfig(point_features=5, hidden=(128,)),
+        backbone=BackboneConfig(d_model=128, frustum_theta_bins=9),
+        bev=BEVConfig(x_min=-74.88, x_max=74.88, y_min=-74.88, y_max=74.88, cell=0.32),
+        head=HeadConfig(),
+    )
+
+
+def tiny() -> PHiMConfig:
+    """Same architecture, sized for real time on a 2-core CPU."""
+    return PHiMConfig(
+        name="tiny",
+        grid=PolarGridConfig(r_bins=128, theta_bins=256, z_bins=16, r_min=1.0, r_max=52.2, z_min=-3.0, z_max=3.0),
+        vfe=VFEConfig(point_features=4, hidden=(32,)),
+        backbone=BackboneConfig(
+            d_model=32,
+            down_strides=(1, 2),
+            down_kernels=(3, 3),
+            frustum_theta_bins=4,
+            mamba=MambaConfig(d_state=8, expand=2),
+        ),
+        bev=BEVConfig(
+            x_min=-51.2,
+            x_max=51.2,
+            y_min=-51.2,
+            y_max=51.2,
+            cell=0.8,
+            layer_nums=(1, 1),
+            layer_strides=(1, 2),
+            num_filters=(32, 64),
+            upsample_strides=(1, 2),
+            num_upsample_filters=(32, 32),
+        ),
+        head=HeadConfig(shared_channels=32, head_channels=32),
+    )
+
+
+CONFIGS = {"paper": paper, "tiny": tiny}
+
+
+def get_config(name: str) -> PHiMConfig:
+    if name not in CONFIGS:
+        raise ValueError(f"unknown config {name!r}; expected one of {sorted(CONFIGS)}")
+    return CONFIGS[name]()

@@ -1,0 +1,152 @@
+"""CenterPoint detection head (as OpenPCDet's CenterHead with an IoU branch) and box decoding.
+
+BEV layout: tensors are (B, C, ny, nx); row r is the y index, column c the x index. Cell (r, c) covers
+x in [x_min + c * cell, x_min + (c + 1) * cell) and y in [y_min + r * cell, y_min + (r + 1) * cell).
+A box whose centre falls in that cell is predicted there with
+
+    x = bev.x_min + (c + offset_x) * bev.cell,   y = bev.y_min + (r + offset_y) * bev.cell,
+
+so the offset is in cells, in [0, 1) for a centre inside the cell, measured from the cell's lower-left
+(min x, min y) corner. z is the box centre in metres, log_dim the log of (l, w, h) in metres, rot
+(sin yaw, cos yaw), iou the predicted 3D IoU mapped to [-1, 1] (training target 2 * iou - 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from model.boxes import Detections
+from model.config import BEVConfig, HeadConfig
+from model.nms import class_nms
+
+HEATMAP_PRIOR_BIAS = -2.19  # log(0.1 / 0.9): initial heatmap probability about 0.1, as CenterPoint
+
+
+@dataclass
+class HeadOutput:
+    heatmap: Tensor  # (B, K, H, W) logits, K classes
+    offset: Tensor  # (B, 2, H, W) sub-cell centre offset in cells (x, y), from the cell's lower-left corner
+    z: Tensor  # (B, 1, H, W) box centre z, metres
+    log_dim: Tensor  # (B, 3, H, W) log of (l, w, h) in metres
+    rot: Tensor  # (B, 2, H, W) (sin yaw, cos yaw)
+    iou: Tensor  # (B, 1, H, W) predicted IoU in [-1, 1] before rectification (target 2 * iou - 1)
+
+
+def _conv_bn_relu(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, padding=1, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
+
+
+def _branch(cin: int, hidden: int, cout: int, convs: int) -> nn.Sequential:
+    """(convs - 1) x [3x3 conv + BN + ReLU] then a plain 3x3 conv with bias to `cout` channels."""
+    layers: list[nn.Module] = []
+    c = cin
+    for _ in range(convs - 1):
+        layers.append(_conv_bn_relu(c, hidden))
+        c = hidden
+    layers.append(nn.Conv2d(c, cout, 3, padding=1, bias=True))
+    return nn.Sequential(*layers)
+
+
+class CenterHead(nn.Module):
+    """Shared 3x3 conv + BN + ReLU, then one separate branch per output. (B, C, H, W) -> HeadOutput."""
+
+    def __init__(self, in_channels: int, cfg: HeadConfig) -> None:
+        super().__init__()
+        if cfg.head_convs < 1:
+            raise ValueError("head_convs must be >= 1 (the last conv is the output layer)")
+        self.cfg = cfg
+        ch, hid, n = cfg.shared_channels, cfg.head_channels, cfg.head_convs
+        self.shared = _conv_bn_relu(in_channels, ch)
+        self.heatmap = _branch(ch, hid, len(cfg.class_names), n)
+        self.offset = _branch(ch, hid, 2, n)
+        self.z = _branch(ch, hid, 1, n)
+        self.log_dim = _branch(ch, hid, 3, n)
+        self.rot = _branch(ch, hid, 2, n)
+        self.iou = _branch(ch, hid, 1, n)
+        self._init_weights()
+
+    def _init_weights(self) -> None:
+        for branch in (self.offset, self.z, self.log_dim, self.rot, self.iou):
+            for m in branch.modules():
+                if isinstance(m, nn.Conv2d):
+                    nn.init.kaiming_normal_(m.weight)
+                    if m.bias is not None:
+                        nn.init.zeros_(m.bias)
+        last = self.heatmap[-1]
+        assert isinstance(last, nn.Conv2d) and last.bias is not None
+        nn.init.constant_(last.bias, HEATMAP_PRIOR_BIAS)
+
+    def forward(self, bev: Tensor) -> HeadOutput:
+        """bev (B, C, H, W) -> HeadOutput with maps of the same H, W."""
+        x = self.shared(bev)  # (B, shared_channels, H, W)
+        return HeadOutput(
+            heatmap=self.heatmap(x),
+            offset=self.offset(x),
+            z=self.z(x),
+            log_dim=self.log_dim(x),
+            rot=self.rot(x),
+            iou=self.iou(x),
+        )
+
+
+@dataclass
+class _Candidates:
+    """Top-k peaks of a batch, before score filtering and NMS."""
+
+    boxes: Tensor  # (B, T, 7) float32
+    scores: Tensor  # (B, T) rectified scores
+    labels: Tensor  # (B, T) int64
+    is_peak: Tensor  # (B, T) bool; false where top-k ran out of local maxima
+
+
+def _peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> _Candidates:
+    """Local maxima of the class heatmaps, the top cfg.pre_nms_top_k over all classes, decoded to boxes."""
+    hm = torch.sigmoid(out.heatmap.float())  # (B, K, H, W)
+    b, k, h, w = hm.shape
+    peak = F.max_pool2d(hm, kernel_size=3, stride=1, padding=1) == hm  # (B, K, H, W) 3x3 local maxima
+    hm = torch.where(peak, hm, torch.zeros_like(hm))
+    top = min(cfg.pre_nms_top_k, k * h * w)
+    heat, flat = torch.topk(hm.reshape(b, k * h * w), top, dim=1)  # (B, T)
+    labels = torch.div(flat, h * w, rounding_mode="floor")  # (B, T)
+    pix = flat - labels * (h * w)  # (B, T) index into H * W
+    row = torch.div(pix, w, rounding_mode="floor")
+    col = pix - row * w
+    reg = torch.cat((out.offset, out.z, out.log_dim, out.rot, out.iou), dim=1).float()  # (B, 9, H, W)
+    reg = torch.gather(reg.reshape(b, 9, h * w), 2, pix[:, None, :].expand(b, 9, top))  # (B, 9, T)
+    off_x, off_y, z, log_l, log_w, log_h, sin, cos, iou = reg.unbind(1)  # each (B, T)
+    x = bev.x_min + (col.float() + off_x) * bev.cell
+    y = bev.y_min + (row.float() + off_y) * bev.cell
+    dims = torch.exp(torch.stack((log_l, log_w, log_h), dim=-1))  # (B, T, 3)
+    yaw = torch.atan2(sin, cos)
+    boxes = torch.cat((torch.stack((x, y, z), dim=-1), dims, yaw[..., None]), dim=-1)  # (B, T, 7)
+    alpha = heat.new_tensor(cfg.iou_rectifier)[labels]  # (B, T)
+    iou01 = ((iou + 1.0) * 0.5).clamp(0.0, 1.0)
+    scores = heat.pow(1.0 - alpha) * iou01.pow(alpha)  # (B, T)
+    return _Candidates(boxes, scores, labels, heat > 0)
+
+
+@torch.no_grad()
+def decode(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> list[Detections]:
+    """Head maps -> one Detections per batch item (float32 boxes, rectified scores, class labels).
+
+    Steps: sigmoid heatmap; keep 3x3 local maxima; top cfg.pre_nms_top_k over all classes and cells;
+    dims = exp(log_dim), yaw = atan2(sin, cos); score = hm^(1 - a_c) * ((iou + 1) / 2)^a_c with
+    a_c = cfg.iou_rectifier[c]; drop scores below cfg.score_threshold; class-specific rotated NMS with
+    cfg.nms_iou; keep the cfg.post_nms_top_k best. Detections are sorted by descending score.
+    """
+    cand = _peak_candidates(out, cfg, bev)
+    result = []
+    for i in range(cand.boxes.shape[0]):
+        ok = cand.is_peak[i] & (cand.scores[i] >= cfg.score_threshold)  # (T,)
+        boxes, scores, labels = cand.boxes[i][ok], cand.scores[i][ok], cand.labels[i][ok]
+        keep = class_nms(boxes, scores, labels, cfg.nms_iou, cfg.pre_nms_top_k, cfg.post_nms_top_k)
+        result.append(Detections(boxes[keep], scores[keep], labels[keep]))
+    return result

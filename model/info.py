@@ -1,0 +1,72 @@
+"""Parameter count and a measured FLOP count for a config (`phim model info`)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import Tensor, nn
+from torch.utils.flop_counter import FlopCounterMode
+
+from model.config import PHiMConfig
+from model.detector import PHiM
+from model.phim_block import StreamLayout
+from model.sectors import split_turn
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    config: str
+    params: int
+    params_mb: float  # float32 weights
+    params_by_part: dict[str, int]
+    gflops: float  # one full turn in one pass: 3D part over all sectors + one BEV/head pass
+    gflops_per_sector_step: float  # streaming: one sector through the 3D part + one BEV/head pass
+    input_points: int
+    voxels: int
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def count_params(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def _flops(fn) -> float:
+    counter = FlopCounterMode(display=False)
+    with counter:
+        fn()
+    return counter.get_total_flops() / 1e9
+
+
+@torch.inference_mode()
+def model_info(cfg: PHiMConfig, turn: Tensor) -> ModelInfo:
+    """Counts matmul/conv FLOPs (multiply-add = 2 FLOPs) of real forwards over `turn` (N, C) points.
+
+    FLOPs of a sparse model depend on occupancy, so the input scan is part of the answer.
+    """
+    model = PHiM(cfg).eval()
+    sectors = split_turn(turn, cfg.sectors_per_turn)
+    turn_layout = StreamLayout.single_stream(len(sectors), model.device)
+    enc = model.encode(sectors, turn_layout, model.init_states(1))
+    full = _flops(lambda: model.detect([model.encode(sectors, turn_layout, model.init_states(1)).sectors]))
+    one = StreamLayout.one_per_item(1, model.device)
+    step = _flops(lambda: model.detect([model.encode(sectors[:1], one, model.init_states(1)).sectors]))
+    parts = {
+        "voxelizer": model.voxelizer,
+        "backbone3d": model.backbone,
+        "bev_backbone": model.bev_backbone,
+        "head": model.head,
+    }
+    params = count_params(model)
+    return ModelInfo(
+        config=cfg.name,
+        params=params,
+        params_mb=round(params * 4 / 2**20, 2),
+        params_by_part={k: count_params(v) for k, v in parts.items()},
+        gflops=round(full, 2),
+        gflops_per_sector_step=round(step, 2),
+        input_points=int(turn.shape[0]),
+        voxels=sum(s.num_voxels for s in enc.sectors),
+    )

@@ -1,0 +1,159 @@
+"""Mamba-1 layer (selective SSM block of the Mamba paper) over packed sequences, with carried state.
+
+    x, z   = split(in_proj(x))                        # (T, d_inner) each
+    x      = SiLU(causal depthwise conv1d(x))         # per sequence, continuing from state.conv
+    dt, B, C = split(x_proj(x));  delta = softplus(dt_proj(dt))
+    y      = selective_scan(x, delta, A=-exp(A_log), B, C) + D * x     # continuing from state.ssm
+    out    = out_proj(y * SiLU(z))
+
+A sequence cut into pieces and fed piece by piece with the returned state carried gives exactly the
+outputs of one call over the whole sequence (any piece lengths, including 1 and < d_conv - 1).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from model.config import MambaConfig
+from model.scan import selective_scan
+
+
+@dataclass
+class MambaState:
+    """Per-sequence recurrent state of one Mamba layer."""
+
+    conv: Tensor  # (S, d_inner, d_conv - 1): last d_conv - 1 conv inputs, oldest first
+    ssm: Tensor  # (S, d_inner, d_state)
+
+    @staticmethod
+    def zeros(
+        num_seqs: int,
+        d_inner: int,
+        d_conv: int,
+        d_state: int,
+        device: torch.device | str | None,
+        dtype: torch.dtype = torch.float32,
+    ) -> MambaState:
+        return MambaState(
+            conv=torch.zeros(num_seqs, d_inner, d_conv - 1, device=device, dtype=dtype),
+            ssm=torch.zeros(num_seqs, d_inner, d_state, device=device, dtype=dtype),
+        )
+
+    @property
+    def num_seqs(self) -> int:
+        return self.ssm.shape[0]
+
+    def index(self, idx: Tensor) -> MambaState:
+        """Select sequences: idx (K,) int64 -> state with K rows."""
+        return MambaState(conv=self.conv.index_select(0, idx), ssm=self.ssm.index_select(0, idx))
+
+    @staticmethod
+    def cat(states: list[MambaState]) -> MambaState:
+        return MambaState(conv=torch.cat([s.conv for s in states]), ssm=torch.cat([s.ssm for s in states]))
+
+
+def _positions(cu_seqlens: Tensor, total: int) -> tuple[Tensor, Tensor]:
+    """Sequence id and position inside its sequence of every packed token -> ((T,), (T,)) int64."""
+    lengths = cu_seqlens.diff()  # (S,)
+    seq = torch.repeat_interleave(
+        torch.arange(lengths.numel(), device=cu_seqlens.device), lengths, output_size=total
+    )  # (T,)
+    pos = torch.arange(total, device=cu_seqlens.device) - cu_seqlens.index_select(0, seq)  # (T,)
+    return seq, pos
+
+
+def conv_gather_indices(cu_seqlens: Tensor, total: int, d_conv: int) -> tuple[Tensor, Tensor]:
+    """Gather indices into ext = cat([x (T, C), state rows (S * (d_conv - 1), C)]) for the packed causal conv.
+
+    Row s * (d_conv - 1) + c of the state part is column c (oldest first) of sequence s's conv state.
+    Returns (older (d_conv - 1, T): row i = the input d_conv - 1 - i steps before each token;
+             new_state (S, d_conv - 1): the last d_conv - 1 inputs of each sequence, oldest first).
+    """
+    w = d_conv - 1
+    dev = cu_seqlens.device
+    seq, pos = _positions(cu_seqlens, total)  # (T,), (T,)
+    lag = torch.arange(w, 0, -1, device=dev)[:, None]  # (w, 1)
+    back = pos[None, :] - lag  # (w, T) position inside the sequence; < 0 runs off its start
+    tok = torch.arange(total, device=dev)[None, :] - lag  # (w, T)
+    older = torch.where(back >= 0, tok, total + seq[None, :] * w + w + back)  # state column w + back
+    lengths = cu_seqlens.diff()  # (S,)
+    col = torch.arange(w, device=dev)[None, :]  # (1, w)
+    p = lengths[:, None] - w + col  # (S, w) position inside the sequence
+    s_idx = torch.arange(lengths.numel(), device=dev)[:, None]  # (S, 1)
+    new_state = torch.where(p >= 0, cu_seqlens[:-1, None] + p, total + s_idx * w + col + lengths[:, None])
+    return older, new_state
+
+
+class Mamba(nn.Module):
+    """Mamba-1 layer on packed sequences: x (T, d_model), cu_seqlens (S + 1,) -> (T, d_model), state."""
+
+    def __init__(self, d_model: int, cfg: MambaConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.d_model = d_model
+        self.d_inner = cfg.expand * d_model
+        self.dt_rank = cfg.dt_rank or math.ceil(d_model / 16)
+        di, n = self.d_inner, cfg.d_state
+        self.in_proj = nn.Linear(d_model, 2 * di, bias=False)
+        self.conv1d = nn.Conv1d(di, di, cfg.d_conv, groups=di, bias=True)  # weights only; applied by gathers
+        self.x_proj = nn.Linear(di, self.dt_rank + 2 * n, bias=False)
+        self.dt_proj = nn.Linear(self.dt_rank, di, bias=True)
+        self.out_proj = nn.Linear(di, d_model, bias=False)
+        s4d_real = torch.arange(1, n + 1, dtype=torch.float32).repeat(di, 1)  # (di, n) S4D-real: A = -(1..n)
+        self.A_log = nn.Parameter(torch.log(s4d_real))  # (di, n)
+        self.D = nn.Parameter(torch.ones(di))
+        self.A_log._no_weight_decay = True
+        self.D._no_weight_decay = True
+        self._init_dt()
+
+    def _init_dt(self) -> None:
+        cfg = self.cfg
+        std = self.dt_rank**-0.5
+        with torch.no_grad():
+            self.dt_proj.weight.uniform_(-std, std)
+            log_lo, log_hi = math.log(cfg.dt_min), math.log(cfg.dt_max)
+            dt = torch.exp(torch.rand(self.d_inner) * (log_hi - log_lo) + log_lo).clamp(min=cfg.dt_init_floor)
+            self.dt_proj.bias.copy_(dt + torch.log(-torch.expm1(-dt)))  # inverse softplus
+
+    def _conv(self, x: Tensor, cu_seqlens: Tensor, conv_state: Tensor) -> tuple[Tensor, Tensor]:
+        """Packed causal depthwise conv: x (T, di), conv_state (S, di, d_conv - 1) -> (T, di), new state."""
+        T, di = x.shape
+        k = self.cfg.d_conv
+        older, new_idx = conv_gather_indices(cu_seqlens, T, k)  # (k - 1, T), (S, k - 1)
+        state_rows = conv_state.to(x.dtype).transpose(1, 2).reshape(-1, di)  # (S * (k - 1), di)
+        ext = torch.cat([x, state_rows])  # (T + S * (k - 1), di)
+        weight = self.conv1d.weight.view(di, k).t()  # (k, di), row k - 1 multiplies the current token
+        out = torch.addcmul(self.conv1d.bias, x, weight[k - 1])  # (T, di)
+        for i in range(k - 1):  # older inputs, one gather per lag
+            out = out.addcmul_(ext.index_select(0, older[i]), weight[i])
+        new_state = ext.index_select(0, new_idx.reshape(-1)).view(-1, k - 1, di)  # (S, k - 1, di)
+        return out, new_state.transpose(1, 2).contiguous()  # (T, di), (S, di, k - 1)
+
+    def forward(
+        self, x: Tensor, cu_seqlens: Tensor, state: MambaState | None = None
+    ) -> tuple[Tensor, MambaState]:
+        """x (T, d_model) packed; cu_seqlens (S + 1,) int64; state with S rows or None (zeros)."""
+        cfg = self.cfg
+        S = cu_seqlens.numel() - 1
+        if state is None:
+            state = MambaState.zeros(S, self.d_inner, cfg.d_conv, cfg.d_state, x.device, x.dtype)
+            h0 = None
+        else:
+            if state.num_seqs != S:
+                raise ValueError(f"state has {state.num_seqs} sequences, cu_seqlens describes {S}")
+            h0 = state.ssm
+        xz = self.in_proj(x)  # (T, 2 di)
+        xi, z = xz.chunk(2, dim=-1)  # (T, di) each
+        xc, conv_state = self._conv(xi, cu_seqlens, state.conv)
+        xc = F.silu(xc)  # (T, di)
+        dt, B, C = self.x_proj(xc).split([self.dt_rank, cfg.d_state, cfg.d_state], dim=-1)
+        delta = F.softplus(self.dt_proj(dt))  # (T, di)
+        A = -torch.exp(self.A_log.to(torch.promote_types(self.A_log.dtype, torch.float32)))  # (di, n)
+        y, ssm_state = selective_scan(xc, delta, A, B, C, cu_seqlens, h0, cfg.scan, cfg.chunk_size)  # (T, di)
+        y = (y + xc * self.D.to(y.dtype)) * F.silu(z)  # (T, di)
+        return self.out_proj(y), MambaState(conv=conv_state, ssm=ssm_state)

@@ -1,0 +1,109 @@
+"""Greedy rotated non-maximum suppression on BEV IoU, and its class-specific form (as OpenPCDet's
+class-specific NMS for Waymo: one IoU threshold per class, classes never suppress each other).
+
+A box is suppressed when its BEV IoU with a kept box of higher score is strictly greater than the threshold.
+The IoU is computed once, only for the pairs that can exceed the threshold (circumscribed circles overlap and
+area ratio above it); the greedy pass itself is tensor ops on the boolean overlap matrix.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from model.boxes import near_pairs, rotated_iou_bev_aligned
+
+_BLOCK = 64  # candidates resolved together in the greedy pass (small: cheap, unthreaded ops)
+
+
+def _overlap_matrix(boxes: Tensor, iou_threshold: float) -> Tensor:
+    """(N, 7) boxes in descending score order -> (N, N) bool, [i, j] = i < j and IoU(i, j) > threshold."""
+    n = boxes.shape[0]
+    area = boxes[:, 3] * boxes[:, 4]  # (N,)
+    over = torch.zeros(n, n, dtype=torch.bool, device=boxes.device)
+    for ia, ib in near_pairs(boxes):  # (P,), (P,) with ia < ib
+        if iou_threshold > 0:  # IoU <= min(area) / max(area): boxes of very different size cannot exceed it
+            small, large = torch.minimum(area[ia], area[ib]), torch.maximum(area[ia], area[ib])
+            fit = small >= iou_threshold * large
+            ia, ib = ia[fit], ib[fit]
+        hit = rotated_iou_bev_aligned(boxes[ia], boxes[ib]) > iou_threshold  # (P',)
+        over[ia[hit], ib[hit]] = True
+    return over
+
+
+def _greedy_keep(over: Tensor, max_out: int) -> Tensor:
+    """Greedy selection on a strictly upper-triangular overlap matrix (N, N) bool -> keep (N,) bool.
+
+    keep[i] = not any(keep[j] and over[j, i] for j < i). Candidates are resolved in blocks: first the kept
+    boxes of earlier blocks suppress, then inside the block the rule is iterated to its fixed point, which
+    is unique and is reached after at most (longest suppression chain + 1) iterations.
+    """
+    n = over.shape[0]
+    keep = torch.zeros(n, dtype=torch.bool, device=over.device)
+    for s in range(0, n, _BLOCK):
+        e = min(n, s + _BLOCK)
+        alive = ~(keep[:s, None] & over[:s, s:e]).any(dim=0)  # (E,) not suppressed by earlier blocks
+        inner = over[s:e, s:e]  # (E, E)
+        cur = alive
+        for _ in range(e - s + 1):
+            nxt = alive & ~(cur[:, None] & inner).any(dim=0)  # (E,)
+            if torch.equal(nxt, cur):
+                break
+            cur = nxt
+        keep[s:e] = cur
+        if int(keep[:e].sum()) >= max_out:  # later candidates cannot change the first max_out kept
+            break
+    return keep
+
+
+def nms_rotated(boxes: Tensor, scores: Tensor, iou_threshold: float, max_out: int) -> Tensor:
+    """Greedy NMS with BEV rotated IoU.
+
+    boxes (N, 7), scores (N,) -> kept indices into boxes (K,) int64, by descending score, K <= max_out.
+    Equal scores keep their input order.
+    """
+    if boxes.ndim != 2 or boxes.shape[1] != 7 or scores.shape != boxes.shape[:1]:
+        raise ValueError(f"need boxes (N, 7), scores (N,); got {tuple(boxes.shape)}, {tuple(scores.shape)}")
+    if boxes.shape[0] == 0 or max_out <= 0:
+        return torch.zeros(0, dtype=torch.int64, device=boxes.device)
+    order = torch.argsort(scores, descending=True, stable=True)  # (N,)
+    keep = _greedy_keep(_overlap_matrix(boxes[order], iou_threshold), max_out)  # (N,)
+    return order[keep][:max_out]
+
+
+def class_nms(
+    boxes: Tensor,
+    scores: Tensor,
+    labels: Tensor,
+    iou_thresholds: Sequence[float],
+    pre_top_k: int,
+    post_top_k: int,
+) -> Tensor:
+    """Class-specific NMS: per class c, keep its pre_top_k best boxes, run NMS with iou_thresholds[c]; then
+    keep the post_top_k best of all classes.
+
+    boxes (N, 7), scores (N,), labels (N,) int64 in [0, len(iou_thresholds)) -> kept indices (K,) int64,
+    by descending score.
+    """
+    if labels.shape != scores.shape:
+        raise ValueError(f"labels {tuple(labels.shape)} and scores {tuple(scores.shape)} differ")
+    empty = torch.zeros(0, dtype=torch.int64, device=boxes.device)
+    if labels.numel() == 0:
+        return empty
+    if int(labels.min()) < 0 or int(labels.max()) >= len(iou_thresholds):
+        raise ValueError(f"labels must lie in [0, {len(iou_thresholds)}), one IoU threshold per class")
+    kept = []
+    for c, threshold in enumerate(iou_thresholds):
+        idx = (labels == c).nonzero(as_tuple=True)[0]  # (Nc,)
+        if idx.numel() == 0:
+            continue
+        if idx.numel() > pre_top_k:
+            idx = idx[torch.topk(scores[idx], pre_top_k).indices]
+        kept.append(idx[nms_rotated(boxes[idx], scores[idx], threshold, post_top_k)])
+    if not kept:
+        return empty
+    merged = torch.cat(kept)  # (K',)
+    order = torch.argsort(scores[merged], descending=True, stable=True)[:post_top_k]
+    return merged[order]

@@ -1,0 +1,132 @@
+"""The PHiM block (paper Algorithm 1) and the 3D backbone made of them.
+
+One block, for a batch of sectors (one batch item = one sector; sectors never mix here except through the
+global Mamba, which runs forward in time over the sectors of each stream):
+
+    local:  voxels serialized by (azimuth, radius, height) inside each azimuth frustum;
+            V_local = x + fwd_mamba(LN(x)) + reverse(bwd_mamba(reverse(LN(x))))
+    down:   decomposed sparse convs on the (r, z) then (theta, z) planes -> sector-level features
+    global: forward Mamba over each stream's sector-level features in time order, continuing from the
+            stream's carried state; then LayerNorm (the paper's "normalize")
+    up:     decomposed inverse convs back to the local sites; residual with V_local
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from model.config import BackboneConfig
+from model.decomposed import DecomposedDown, DecomposedUp
+from model.mamba import Mamba, MambaState
+from model.sparse_tensor import BATCH, THETA, SparseTensor
+
+
+@dataclass(frozen=True)
+class StreamLayout:
+    """Which stream each batch item (sector) belongs to.
+
+    `stream_index` (B,) int64 is non-decreasing and the items of one stream are in time order, so a
+    stream's sectors are contiguous: its global-Mamba sequence is their tokens concatenated.
+    """
+
+    stream_index: Tensor  # (B,) int64
+    num_streams: int
+
+    @staticmethod
+    def one_per_item(batch_size: int, device: torch.device) -> StreamLayout:
+        return StreamLayout(torch.arange(batch_size, device=device), batch_size)
+
+    @staticmethod
+    def single_stream(batch_size: int, device: torch.device) -> StreamLayout:
+        return StreamLayout(torch.zeros(batch_size, dtype=torch.int64, device=device), 1)
+
+
+def cu_seqlens_from_keys(keys: Tensor, num_groups: int) -> Tensor:
+    """Sorted group ids (T,) in [0, num_groups) -> cu_seqlens (num_groups + 1,), empty groups allowed."""
+    counts = torch.bincount(keys, minlength=num_groups)  # (G,)
+    return torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+
+
+def frustum_cu_seqlens(x: SparseTensor, frustum_theta_bins: int) -> Tensor:
+    """Packed frustum sequences of x (rows sorted by (batch, theta, r, z)) -> cu_seqlens (F' + 1,).
+
+    Only non-empty frustums become sequences; their rows are contiguous because theta is the major key.
+    """
+    n_frustums = -(-x.spatial_shape[1] // frustum_theta_bins)
+    key = x.coords[:, BATCH] * n_frustums + x.coords[:, THETA] // frustum_theta_bins  # (N,)
+    if key.numel() == 0:
+        return key.new_zeros(1)
+    _, counts = torch.unique_consecutive(key, return_counts=True)
+    return torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+
+
+def reverse_packed(x: Tensor, cu_seqlens: Tensor) -> tuple[Tensor, Tensor]:
+    """Reverse every packed sequence: flipping the whole pack reverses each sequence and their order."""
+    lengths = cu_seqlens.diff().flip(0)
+    return x.flip(0), torch.cat([cu_seqlens.new_zeros(1), lengths.cumsum(0)])
+
+
+class PHiMBlock(nn.Module):
+    def __init__(self, cfg: BackboneConfig, kernel: int, stride: int):
+        super().__init__()
+        d = cfg.d_model
+        self.frustum_theta_bins = cfg.frustum_theta_bins
+        self.norm_local = nn.LayerNorm(d)
+        self.fwd_mamba = Mamba(d, cfg.mamba)
+        self.bwd_mamba = Mamba(d, cfg.mamba)
+        self.down = DecomposedDown(d, kernel, stride)
+        self.global_mamba = Mamba(d, cfg.mamba)
+        self.norm_global = nn.LayerNorm(d)
+        self.up = DecomposedUp(d, kernel, stride)
+
+    def local(self, x: SparseTensor) -> Tensor:
+        """Bidirectional Mamba inside each frustum -> V_local features (N, C)."""
+        cu = frustum_cu_seqlens(x, self.frustum_theta_bins)
+        h = self.norm_local(x.features)  # (N, C)
+        fwd, _ = self.fwd_mamba(h, cu)
+        h_rev, cu_rev = reverse_packed(h, cu)
+        bwd, _ = self.bwd_mamba(h_rev, cu_rev)
+        return x.features + fwd + bwd.flip(0)
+
+    def forward(
+        self, x: SparseTensor, layout: StreamLayout, state: MambaState
+    ) -> tuple[SparseTensor, MambaState]:
+        """x: sectors (rows sorted by (batch, theta, r, z)); state: global Mamba state, one row per stream."""
+        v_local = self.local(x)  # (N, C)
+        coarse, ctx = self.down(x.replace(v_local))
+        stream_of_row = layout.stream_index.index_select(0, coarse.coords[:, BATCH])  # (M,)
+        cu = cu_seqlens_from_keys(stream_of_row, layout.num_streams)
+        g, new_state = self.global_mamba(coarse.features, cu, state)  # (M, C)
+        up = self.up(coarse.replace(self.norm_global(g)), ctx)
+        return x.replace(up.features + v_local), new_state
+
+
+class PHiMBackbone(nn.Module):
+    """A stack of PHiM blocks, one per (down_stride, down_kernel) pair of the config."""
+
+    def __init__(self, cfg: BackboneConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.blocks = nn.ModuleList(
+            PHiMBlock(cfg, k, s) for s, k in zip(cfg.down_strides, cfg.down_kernels, strict=True)
+        )
+
+    def init_states(self, num_streams: int, device: torch.device) -> list[MambaState]:
+        """Zero global-Mamba states, one MambaState (num_streams rows) per block."""
+        m = self.cfg.mamba
+        d_inner = m.expand * self.cfg.d_model
+        return [
+            MambaState.zeros(num_streams, d_inner, m.d_conv, m.d_state, device) for _ in self.blocks
+        ]
+
+    def forward(
+        self, x: SparseTensor, layout: StreamLayout, states: list[MambaState]
+    ) -> tuple[SparseTensor, list[MambaState]]:
+        new_states = []
+        for block, state in zip(self.blocks, states, strict=True):
+            x, s = block(x, layout, state)
+            new_states.append(s)
+        return x, new_states

@@ -1,0 +1,108 @@
+"""Streaming API: the only model surface the server uses.
+
+A stream (one vehicle's LiDAR) has an explicit, immutable `StreamState`. `StreamingDetector.step` runs one
+forward over a batch of sectors from different streams, each with its own state, and returns each sector's
+detections plus each stream's new state. Input states are never modified, so a failed batch leaves every
+stream exactly as it was.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from model.boxes import Detections
+from model.detector import PHiM, SectorFeatures
+from model.mamba import MambaState
+from model.phim_block import StreamLayout
+from model.voxelize import PointsError, validate_points
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class StreamState:
+    mamba: tuple[MambaState, ...]  # per PHiM block: the global Mamba's (conv, ssm) state of this stream
+    buffer: tuple[SectorFeatures, ...]  # backbone outputs of the last sectors, oldest first
+    sectors_seen: int
+
+    @property
+    def buffered_sectors(self) -> int:
+        return len(self.buffer)
+
+
+@dataclass(frozen=True)
+class SectorResult:
+    detections: Detections  # boxes over everything the buffer covers (up to 360 degrees)
+    context_sectors: int  # sectors the prediction saw: the new one plus the buffered ones
+    points_kept: int
+    points_out_of_range: int
+
+
+class StreamingDetector:
+    def __init__(self, model: PHiM):
+        self.model = model.eval()
+        self.cfg = model.cfg
+        log.info(
+            "streaming detector: config=%s device=%s scan=%s",
+            self.cfg.name,
+            model.device,
+            self.cfg.backbone.mamba.scan.value,
+        )
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.device
+
+    def init_state(self) -> StreamState:
+        states = self.model.init_states(1)
+        return StreamState(mamba=tuple(states), buffer=(), sectors_seen=0)
+
+    def reset(self, state: StreamState | None = None) -> StreamState:
+        """A fresh state; the old one is simply dropped."""
+        return self.init_state()
+
+    def validate(self, points: Tensor) -> None:
+        """Raise PointsError if a sector's points can't be run (the server calls this before queueing)."""
+        validate_points(points)
+        if points.dtype != torch.float32:
+            raise PointsError(f"points: dtype {points.dtype}; expected float32")
+
+    @torch.inference_mode()
+    def step(
+        self, points: list[Tensor], states: list[StreamState]
+    ) -> tuple[list[SectorResult], list[StreamState]]:
+        """One sector per stream: points[i] (N_i, C) float32 goes with states[i].
+
+        Returns per stream its SectorResult and its new StreamState (same order).
+        """
+        if len(points) != len(states):
+            raise ValueError(f"{len(points)} sectors but {len(states)} states")
+        for p in points:
+            self.validate(p)
+        dev = self.device
+        points = [p.to(dev, non_blocking=True) for p in points]
+        layout = StreamLayout.one_per_item(len(points), dev)
+        per_block = [MambaState.cat([s.mamba[k] for s in states]) for k in range(len(self.model.backbone.blocks))]
+        enc = self.model.encode(points, layout, per_block)
+        scenes = [[*s.buffer, new] for s, new in zip(states, enc.sectors, strict=True)]
+        detections = self.model.detect(scenes)
+        keep = self.cfg.buffer_sectors
+        results, new_states = [], []
+        for i, (s, scene) in enumerate(zip(states, scenes, strict=True)):
+            idx = torch.tensor([i], device=dev)
+            mamba = tuple(b.index(idx) for b in enc.states)
+            buffer = tuple(scene[-keep:]) if keep else ()
+            new_states.append(StreamState(mamba, buffer, s.sectors_seen + 1))
+            results.append(
+                SectorResult(
+                    detections=detections[i],
+                    context_sectors=len(scene),
+                    points_kept=enc.stats.points_kept[i],
+                    points_out_of_range=enc.stats.points_out_of_range[i],
+                )
+            )
+        return results, new_states

@@ -1,0 +1,54 @@
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from model.config import PHiMConfig, paper, tiny
+from model.detector import PHiM
+
+
+def test_roundtrip_is_bit_exact(tmp_path):
+    model = PHiM(tiny())
+    for p in model.parameters():
+        p.data.normal_()
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, model, meta={"note": "test"})
+    loaded = load_checkpoint(path, expected=tiny())
+    ref = model.state_dict()
+    got = loaded.state_dict()
+    assert ref.keys() == got.keys()
+    for k in ref:
+        assert torch.equal(ref[k], got[k]), k
+    assert loaded.cfg == model.cfg
+
+
+def test_config_roundtrip():
+    for cfg in (tiny(), paper()):
+        assert PHiMConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_mismatch_names_the_field(tmp_path):
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, PHiM(tiny()))
+    other = dataclasses.replace(tiny(), buffer_sectors=2)
+    with pytest.raises(CheckpointError, match="buffer_sectors: checkpoint has 3, expected 2"):
+        load_checkpoint(path, expected=other)
+    deeper = dataclasses.replace(tiny(), backbone=dataclasses.replace(tiny().backbone, d_model=48))
+    with pytest.raises(CheckpointError, match="backbone.d_model"):
+        load_checkpoint(path, expected=deeper)
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(CheckpointError, match="no such file"):
+        load_checkpoint(tmp_path / "missing.pt")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="unreadable"):
+        load_checkpoint(junk)
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(1)}, other)
+    with pytest.raises(CheckpointError, match="not a phim-checkpoint"):
+        load_checkpoint(other)

@@ -1,0 +1,132 @@
+"""The streaming contract: sector-by-sector with carried state == whole turn; streams never mix."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+from conftest import kitti_scan
+
+from model.boxes import Detections
+from model.config import tiny
+from model.detector import PHiM
+from model.sectors import split_turn
+from model.stream import StreamingDetector
+from model.synthetic import synthetic_turn
+from model.voxelize import PointsError
+
+
+def make_model(score_threshold: float = 0.05) -> PHiM:
+    cfg = tiny()
+    cfg = dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, score_threshold=score_threshold))
+    torch.manual_seed(1)
+    model = PHiM(cfg)
+    # Non-trivial BatchNorm statistics so eval mode is not an identity-like network.
+    for m in model.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.running_mean.uniform_(-0.1, 0.1)
+            m.running_var.uniform_(0.5, 1.5)
+    return model.eval()
+
+
+def assert_same_detections(a: Detections, b: Detections, atol: float = 1e-4) -> None:
+    assert len(a) == len(b), f"{len(a)} vs {len(b)} boxes"
+    if len(a) == 0:
+        return
+    torch.testing.assert_close(a.scores.sort().values, b.scores.sort().values, atol=atol, rtol=0)
+    d = torch.cdist(a.boxes[:, :3].double(), b.boxes[:, :3].double())  # (K, K)
+    assert d.min(1).values.max() < atol * 10 and d.min(0).values.max() < atol * 10
+
+
+def stream(det: StreamingDetector, sectors: list[torch.Tensor]):
+    state = det.init_state()
+    results = []
+    for s in sectors:
+        (r,), (state,) = det.step([s], [state])
+        results.append(r)
+    return results, state
+
+
+@pytest.fixture(scope="module")
+def model() -> PHiM:
+    return make_model()
+
+
+def test_streaming_equals_whole_turn(model: PHiM):
+    sectors = split_turn(kitti_scan(0), model.cfg.sectors_per_turn)
+    det = StreamingDetector(model)
+    results, state = stream(det, sectors)
+    with torch.inference_mode():
+        whole, enc = model.forward_turn(sectors)
+    # Global-Mamba outputs feed every sector's backbone output: the buffer holds sectors 1..3.
+    for buffered, ref in zip(state.buffer, enc.sectors[1:], strict=True):
+        torch.testing.assert_close(buffered.coords, ref.coords, rtol=0, atol=0)
+        torch.testing.assert_close(buffered.features, ref.features, rtol=1e-4, atol=1e-5)
+    for k, (s_state, ref) in enumerate(zip(state.mamba, enc.states, strict=True)):
+        torch.testing.assert_close(s_state.ssm, ref.ssm, rtol=1e-4, atol=1e-5, msg=f"block {k} ssm state")
+        torch.testing.assert_close(s_state.conv, ref.conv, rtol=1e-4, atol=1e-5, msg=f"block {k} conv state")
+    assert len(whole[0]) > 0
+    assert_same_detections(results[-1].detections, whole[0])
+    assert [r.context_sectors for r in results] == [1, 2, 3, 4]
+
+
+def test_partial_turn_differs_from_full(model: PHiM):
+    """Sanity for the test above: predictions with fewer buffered sectors are not the full-turn ones."""
+    sectors = split_turn(kitti_scan(0), model.cfg.sectors_per_turn)
+    results, _ = stream(StreamingDetector(model), sectors)
+    assert len(results[0].detections) != len(results[-1].detections) or not torch.allclose(
+        results[0].detections.scores, results[-1].detections.scores
+    )
+
+
+def test_batched_equals_alone_in_any_order(model: PHiM):
+    det = StreamingDetector(model)
+    turns = [kitti_scan(0), kitti_scan(1), synthetic_turn(seed=3)]
+    sectors = [split_turn(t, model.cfg.sectors_per_turn) for t in turns]
+    alone = [stream(det, s)[0] for s in sectors]
+    for order in ([0, 1, 2], [2, 0, 1]):
+        states = [det.init_state() for _ in order]
+        for k in range(model.cfg.sectors_per_turn):
+            results, states = det.step([sectors[i][k] for i in order], states)
+            for r, i in zip(results, order, strict=True):
+                assert_same_detections(r.detections, alone[i][k].detections)
+                assert r.context_sectors == alone[i][k].context_sectors
+
+
+def test_empty_sector_and_buffer_limit(model: PHiM):
+    det = StreamingDetector(model)
+    sectors = split_turn(kitti_scan(0), 4)
+    empty = torch.zeros(0, 4)
+    results, state = stream(det, [empty, *sectors, empty])
+    assert results[0].points_kept == 0
+    assert len(results[0].detections) == 0
+    assert [r.context_sectors for r in results] == [1, 2, 3, 4, 4, 4]
+    assert len(state.buffer) == model.cfg.buffer_sectors
+    assert state.sectors_seen == 6
+
+
+def test_bad_points_raise_and_leave_states_alone(model: PHiM):
+    det = StreamingDetector(model)
+    sectors = split_turn(kitti_scan(0), 4)
+    _, state = stream(det, sectors[:2])
+    bad = sectors[2].clone()
+    bad[5, 0] = float("nan")
+    with pytest.raises(PointsError, match="points"):
+        det.step([sectors[2], bad], [state, det.init_state()])
+    with pytest.raises(PointsError, match="float32"):
+        det.step([sectors[2].double()], [state])
+    # The state object is immutable and still valid: continuing gives the uninterrupted result.
+    (r,), _ = det.step([sectors[2]], [state])
+    ref, _ = stream(det, sectors[:3])
+    assert_same_detections(r.detections, ref[-1].detections)
+
+
+def test_reset_starts_fresh(model: PHiM):
+    det = StreamingDetector(model)
+    sectors = split_turn(kitti_scan(1), 4)
+    _, state = stream(det, sectors)
+    (after_reset,), _ = det.step([sectors[0]], [det.reset(state)])
+    (fresh,), _ = det.step([sectors[0]], [det.init_state()])
+    assert after_reset.context_sectors == 1
+    assert_same_detections(after_reset.detections, fresh.detections)
