@@ -51,7 +51,9 @@ def _full_turn_peak(model: PHiM, sectors: list[Tensor]) -> float | None:
     return torch.cuda.max_memory_allocated(dev) / 2**20
 
 
-def bench_model(model: PHiM, turn: Tensor, batch: int = 1, turns: int = 10, warmup_turns: int = 2) -> ModelBench:
+def bench_model(
+    model: PHiM, turn: Tensor, batch: int = 1, turns: int = 10, warmup_turns: int = 2
+) -> ModelBench:
     """Stream `turn` (N, C) split into sectors, `batch` streams at once; time every step after warm-up."""
     det = StreamingDetector(model)
     dev = det.device

@@ -48,7 +48,7 @@ class PolarGridConfig:
 
 @dataclass(frozen=True)
 class VFEConfig:
-    """Dynamic voxel feature encoder: per-point MLP, then mean + max scatter pooling per voxel."""
+    """Dynamic voxel feature encoder: per-point MLP with max scatter pooling per voxel (no cap on points)."""
 
     point_features: int = 4  # x, y, z, intensity[, elongation]
     hidden: tuple[int, ...] = (32,)
@@ -173,7 +173,9 @@ def paper() -> PHiMConfig:
     """The paper's Waymo settings (Sec. 4 and appendix B)."""
     return PHiMConfig(
         name="paper",
-        grid=PolarGridConfig(r_bins=468, theta_bins=468, z_bins=32, r_min=0.0, r_max=74.88, z_min=-2.0, z_max=4.0),
+        grid=PolarGridConfig(
+            r_bins=468, theta_bins=468, z_bins=32, r_min=0.0, r_max=74.88, z_min=-2.0, z_max=4.0
+        ),
         vfe=VFEConfig(point_features=5, hidden=(128,)),
         backbone=BackboneConfig(d_model=128, frustum_theta_bins=9),
         bev=BEVConfig(x_min=-74.88, x_max=74.88, y_min=-74.88, y_max=74.88, cell=0.32),
@@ -185,7 +187,9 @@ def tiny() -> PHiMConfig:
     """Same architecture, sized for real time on a 2-core CPU."""
     return PHiMConfig(
         name="tiny",
-        grid=PolarGridConfig(r_bins=128, theta_bins=256, z_bins=16, r_min=1.0, r_max=52.2, z_min=-3.0, z_max=3.0),
+        grid=PolarGridConfig(
+            r_bins=128, theta_bins=256, z_bins=16, r_min=1.0, r_max=52.2, z_min=-3.0, z_max=3.0
+        ),
         vfe=VFEConfig(point_features=4, hidden=(32,)),
         backbone=BackboneConfig(
             d_model=32,
@@ -200,13 +204,15 @@ def tiny() -> PHiMConfig:
             y_min=-51.2,
             y_max=51.2,
             cell=0.8,
-            layer_nums=(1, 1),
-            layer_strides=(1, 2),
+            layer_nums=(0, 1),
+            layer_strides=(2, 2),
             num_filters=(32, 64),
-            upsample_strides=(1, 2),
+            upsample_strides=(2, 4),
             num_upsample_filters=(32, 32),
         ),
-        head=HeadConfig(shared_channels=32, head_channels=32),
+        head=HeadConfig(
+            shared_channels=16, head_channels=16, head_convs=1, pre_nms_top_k=1000, post_nms_top_k=200
+        ),
     )
 
 

@@ -78,7 +78,9 @@ class PHiM(nn.Module):
         if not feats:
             feats = [torch.zeros(0, self.cfg.backbone.d_model, device=self.device)]
             coords = [torch.zeros(0, 4, dtype=torch.int64, device=self.device)]
-        return SparseTensor(torch.cat(feats), torch.cat(coords), (g.r_bins, g.theta_bins, g.z_bins), len(scenes))
+        return SparseTensor(
+            torch.cat(feats), torch.cat(coords), (g.r_bins, g.theta_bins, g.z_bins), len(scenes)
+        )
 
     def predict(self, scenes: list[list[SectorFeatures]]) -> HeadOutput:
         bev = self.to_bev(self.bev_input(scenes))  # (B, C, ny, nx)

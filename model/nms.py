@@ -62,10 +62,12 @@ def nms_rotated(boxes: Tensor, scores: Tensor, iou_threshold: float, max_out: in
     """Greedy NMS with BEV rotated IoU.
 
     boxes (N, 7), scores (N,) -> kept indices into boxes (K,) int64, by descending score, K <= max_out.
-    Equal scores keep their input order.
+    A box goes when its IoU with a kept better box is > iou_threshold (>= 0). Equal scores keep input order.
     """
     if boxes.ndim != 2 or boxes.shape[1] != 7 or scores.shape != boxes.shape[:1]:
         raise ValueError(f"need boxes (N, 7), scores (N,); got {tuple(boxes.shape)}, {tuple(scores.shape)}")
+    if not iou_threshold >= 0.0:  # also rejects NaN
+        raise ValueError(f"iou_threshold must be >= 0, got {iou_threshold}")
     if boxes.shape[0] == 0 or max_out <= 0:
         return torch.zeros(0, dtype=torch.int64, device=boxes.device)
     order = torch.argsort(scores, descending=True, stable=True)  # (N,)

@@ -118,9 +118,7 @@ class PHiMBackbone(nn.Module):
         """Zero global-Mamba states, one MambaState (num_streams rows) per block."""
         m = self.cfg.mamba
         d_inner = m.expand * self.cfg.d_model
-        return [
-            MambaState.zeros(num_streams, d_inner, m.d_conv, m.d_state, device) for _ in self.blocks
-        ]
+        return [MambaState.zeros(num_streams, d_inner, m.d_conv, m.d_state, device) for _ in self.blocks]
 
     def forward(
         self, x: SparseTensor, layout: StreamLayout, states: list[MambaState]

@@ -96,7 +96,6 @@ class _Layout:
     """
 
     block_sizes: list[int]  # (W,) chunks active at position k
-    block_starts: list[int]  # (W,) offset of block k in the packed layout
     num_full: int  # chunks that are not the last of their sequence
     seq_counts: list[int]  # sequences with more than j chunks, j = 0..max_chunks-1
     packed_to_token: Tensor  # (T,) int64
@@ -155,7 +154,6 @@ def _build_layout(cu_seqlens: Tensor, chunk_size: int, total: int) -> _Layout:
     p2t, t2p, full_pos, r_seq, l_seq, l_rank, l_pos = flat.split([a.size for a in index_arrays])
     return _Layout(
         block_sizes=block_sizes.tolist(),
-        block_starts=block_starts.tolist(),
         num_full=n_full,
         seq_counts=seq_counts.tolist(),
         packed_to_token=p2t,
@@ -168,12 +166,14 @@ def _build_layout(cu_seqlens: Tensor, chunk_size: int, total: int) -> _Layout:
     )
 
 
-def _local_finals(E: Tensor, dBu: Tensor, lay: _Layout) -> Tensor:
-    """Final state of every full chunk scanned from zero state -> (NF, N, D), j-major order."""
-    nf = lay.num_full
-    h = dBu[:nf]  # (NF, N, D) position 0 (block 0 starts at 0)
-    for start in lay.block_starts[1:]:
-        h = torch.addcmul(dBu[start : start + nf], E[start : start + nf], h)
+def _local_finals(E: list[Tensor], dBu: list[Tensor], num_full: int) -> Tensor:
+    """Final state of every full chunk scanned from zero state -> (NF, N, D), j-major order.
+
+    E, dBu: the position blocks of the packed (T, N, D) tensors (block k: (m_k, N, D)).
+    """
+    h = dBu[0][:num_full]  # (NF, N, D)
+    for e, b in zip(E[1:], dBu[1:], strict=True):
+        h = torch.addcmul(b[:num_full], e[:num_full], h)
     return h
 
 
@@ -185,36 +185,33 @@ def _carry(
     decay, local_final (NF, N, D) for the full chunks (j-major); h_start (R, N, D) by rank.
     Returns (entering states of the full chunks (NF, N, D), of the last chunks by rank (R, N, D)).
     """
+    counts = seq_counts[1:]  # full chunks per chunk index j
     entering_full: list[Tensor] = []
     entering_last: list[Tensor] = []  # pieces by descending rank ranges
-    state, off = h_start, 0  # (n_j, N, D)
-    for j in range(len(seq_counts)):
-        n_next = seq_counts[j + 1] if j + 1 < len(seq_counts) else 0
+    state = h_start  # (n_j, N, D)
+    for n_next, dec, fin in zip(counts, decay.split(counts), local_final.split(counts), strict=True):
         entering_last.append(state[n_next:])  # chunk j is the last one of these sequences
-        if n_next == 0:
-            break
-        cur = state[:n_next]
-        entering_full.append(cur)
-        state = torch.addcmul(local_final[off : off + n_next], decay[off : off + n_next], cur)
-        off += n_next
+        entering_full.append(state[:n_next])
+        state = torch.addcmul(fin, dec, state[:n_next])
+    entering_last.append(state)
     full = torch.cat(entering_full) if entering_full else local_final[:0]
     return full, torch.cat(entering_last[::-1])
 
 
-def _scan_all(E: Tensor, dBu: Tensor, h_in: Tensor, lay: _Layout, inplace: bool) -> Tensor:
-    """Scan every chunk from its entering state h_in (NC, N, D) -> states at every position (T, N, D)."""
-    sizes, starts = lay.block_sizes, lay.block_starts
-    if inplace:  # no autograd: accumulate into dBu's storage
-        dBu[: sizes[0]].addcmul_(E[: sizes[0]], h_in)
-        for k in range(1, len(sizes)):
-            a, m, p = starts[k], sizes[k], starts[k - 1]
-            dBu[a : a + m].addcmul_(E[a : a + m], dBu[p : p + m])
+def _scan_all(E: list[Tensor], dBu: list[Tensor], h_in: Tensor, inplace: bool) -> list[Tensor]:
+    """Scan every chunk from its entering state h_in (NC, N, D) -> states, position blocks (m_k, N, D).
+
+    With `inplace` (no autograd) the states are accumulated into dBu's storage.
+    """
+    if inplace:
+        dBu[0].addcmul_(E[0], h_in)
+        for k in range(1, len(dBu)):
+            dBu[k].addcmul_(E[k], dBu[k - 1][: dBu[k].shape[0]])
         return dBu
-    hs = [torch.addcmul(dBu[: sizes[0]], E[: sizes[0]], h_in)]
-    for k in range(1, len(sizes)):
-        a, m = starts[k], sizes[k]
-        hs.append(torch.addcmul(dBu[a : a + m], E[a : a + m], hs[-1][:m]))
-    return torch.cat(hs)
+    hs = [torch.addcmul(dBu[0], E[0], h_in)]
+    for e, b in zip(E[1:], dBu[1:], strict=True):
+        hs.append(torch.addcmul(b, e, hs[-1][: b.shape[0]]))
+    return hs
 
 
 def selective_scan_chunked(
@@ -248,16 +245,20 @@ def selective_scan_chunked(
     E = E.exp_() if inplace else E.exp()
     du = dp * u.index_select(0, p2t).to(cd)  # (T, D)
     dBu = du[:, None, :] * B.index_select(0, p2t).to(cd)[:, :, None]  # (T, N, D)
+    E_blocks, dBu_blocks = E.split(lay.block_sizes), dBu.split(lay.block_sizes)  # views, (m_k, N, D) each
     nf = lay.num_full
     h_rank = h_init.transpose(1, 2).index_select(0, lay.rank_seq).contiguous()  # (R, N, D)
     if nf:
         delta_sum = dp.index_select(0, lay.full_positions).view(-1, nf, D).sum(0)  # (NF, D)
         decay = torch.exp(delta_sum[:, None, :] * At)  # (NF, N, D)
-        entering_full, entering_last = _carry(decay, _local_finals(E, dBu, lay), h_rank, lay.seq_counts)
+        entering_full, entering_last = _carry(
+            decay, _local_finals(E_blocks, dBu_blocks, nf), h_rank, lay.seq_counts
+        )
     else:
         entering_full, entering_last = h_rank[:0], h_rank
     h_in = torch.cat([entering_full, entering_last.index_select(0, lay.last_rank)])  # (NC, N, D)
-    H = _scan_all(E, dBu, h_in, lay, inplace)  # (T, N, D) packed
+    H_blocks = _scan_all(E_blocks, dBu_blocks, h_in, inplace)
+    H = dBu if inplace else torch.cat(H_blocks)  # (T, N, D) packed
     Cp = C.index_select(0, p2t).to(cd)  # (T, N)
     y = torch.bmm(Cp[:, None, :], H).squeeze(1)  # (T, D) packed
     final = h_init.index_copy(0, lay.last_seq, H.index_select(0, lay.last_pos).transpose(1, 2))  # (S, D, N)

@@ -23,7 +23,9 @@ class SparseTensor:
 
     def __post_init__(self) -> None:
         if self.features.shape[0] != self.coords.shape[0]:
-            raise ValueError(f"features {tuple(self.features.shape)} and coords {tuple(self.coords.shape)} differ in N")
+            raise ValueError(
+                f"features {tuple(self.features.shape)} and coords {tuple(self.coords.shape)} differ in N"
+            )
 
     def replace(self, features: Tensor) -> SparseTensor:
         """Same sites, new features (N, C')."""
@@ -53,7 +55,9 @@ def to_dense(x: SparseTensor) -> Tensor:
     return out
 
 
-def empty_like_grid(channels: int, spatial_shape: tuple[int, int, int], batch_size: int, device: torch.device):
+def empty_like_grid(
+    channels: int, spatial_shape: tuple[int, int, int], batch_size: int, device: torch.device
+):
     return SparseTensor(
         torch.zeros(0, channels, device=device),
         torch.zeros(0, 4, dtype=torch.int64, device=device),

@@ -86,7 +86,9 @@ class StreamingDetector:
         dev = self.device
         points = [p.to(dev, non_blocking=True) for p in points]
         layout = StreamLayout.one_per_item(len(points), dev)
-        per_block = [MambaState.cat([s.mamba[k] for s in states]) for k in range(len(self.model.backbone.blocks))]
+        per_block = [
+            MambaState.cat([s.mamba[k] for s in states]) for k in range(len(self.model.backbone.blocks))
+        ]
         enc = self.model.encode(points, layout, per_block)
         scenes = [[*s.buffer, new] for s, new in zip(states, enc.sectors, strict=True)]
         detections = self.model.detect(scenes)

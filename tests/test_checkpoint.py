@@ -37,7 +37,7 @@ def test_mismatch_names_the_field(tmp_path):
     with pytest.raises(CheckpointError, match="buffer_sectors: checkpoint has 3, expected 2"):
         load_checkpoint(path, expected=other)
     deeper = dataclasses.replace(tiny(), backbone=dataclasses.replace(tiny().backbone, d_model=48))
-    with pytest.raises(CheckpointError, match="backbone.d_model"):
+    with pytest.raises(CheckpointError, match=r"backbone\.d_model"):
         load_checkpoint(path, expected=deeper)
 
 
