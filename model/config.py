@@ -75,6 +75,9 @@ class BackboneConfig:
     down_strides: tuple[int, ...] = (1, 1, 1, 2, 1, 4)
     down_kernels: tuple[int, ...] = (3, 3, 3, 3, 3, 5)
     frustum_theta_bins: int = 9  # azimuth bins per frustum of the local Mamba
+    # z extent of the decomposed (theta, z) conv and its inverse (the theta extent is the block's kernel):
+    # 1 = an azimuth-only kernel, the paper's "(1, 3) on (z, theta)"; the kernel size k gives a square k x k
+    tz_kernel_z: int = 1
     mamba: MambaConfig = field(default_factory=MambaConfig)
 
     def __post_init__(self) -> None:

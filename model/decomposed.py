@@ -3,7 +3,7 @@
 Down (kernel k, stride s), each conv followed by BatchNorm1d (eps 1e-3, momentum 0.01) and ReLU:
   (a) sparse conv on Plane.RZ, stride (s, s) on (r, z)
   (b) submanifold conv on Plane.RZ
-  (c) sparse conv on Plane.THETA_Z, stride (s, 1) on (theta, z)
+  (c) sparse conv on Plane.THETA_Z, kernel (k, kz) and stride (s, 1) on (theta, z); kz = `tz_kernel_z`
 Up: inverse conv of (c), then inverse conv of (a), each with BatchNorm1d + ReLU; the result lies exactly on
 the down-sampling input's sites, in its row order.
 
@@ -64,14 +64,16 @@ def _check(kernel: int, stride: int) -> None:
 class DecomposedDown(nn.Module):
     """(N, C) sparse voxels -> (M, C) coarser sites; channels constant."""
 
-    def __init__(self, channels: int, kernel: int, stride: int) -> None:
+    def __init__(self, channels: int, kernel: int, stride: int, tz_kernel_z: int) -> None:
         super().__init__()
         _check(kernel, stride)
+        _check(tz_kernel_z, 1)
         self.stride = stride
         subm = stride == 1
+        tz_kernel = (kernel, tz_kernel_z)
         self.conv_rz = SparseConv2d(channels, channels, kernel, (stride, stride), Plane.RZ, subm=subm)
         self.conv_sub = SparseConv2d(channels, channels, kernel, (1, 1), Plane.RZ, subm=True)
-        self.conv_tz = SparseConv2d(channels, channels, kernel, (stride, 1), Plane.THETA_Z, subm=subm)
+        self.conv_tz = SparseConv2d(channels, channels, tz_kernel, (stride, 1), Plane.THETA_Z, subm=subm)
         self.bn_rz, self.bn_sub, self.bn_tz = make_bn(channels), make_bn(channels), make_bn(channels)
 
     def forward(self, x: SparseTensor) -> tuple[SparseTensor, DownContext]:
@@ -87,11 +89,12 @@ class DecomposedDown(nn.Module):
 class DecomposedUp(nn.Module):
     """(M, C) coarse sites -> (N, C) exactly at the paired DecomposedDown input's sites, in its row order."""
 
-    def __init__(self, channels: int, kernel: int, stride: int) -> None:
+    def __init__(self, channels: int, kernel: int, stride: int, tz_kernel_z: int) -> None:
         super().__init__()
         _check(kernel, stride)
+        _check(tz_kernel_z, 1)
         self.stride = stride  # the paired DecomposedDown's; the rule books carry the geometry
-        self.inv_tz = SparseInverseConv2d(channels, channels, kernel, Plane.THETA_Z)
+        self.inv_tz = SparseInverseConv2d(channels, channels, (kernel, tz_kernel_z), Plane.THETA_Z)
         self.inv_rz = SparseInverseConv2d(channels, channels, kernel, Plane.RZ)
         self.bn_tz, self.bn_rz = make_bn(channels), make_bn(channels)
 

@@ -77,10 +77,10 @@ class PHiMBlock(nn.Module):
         self.norm_local = nn.LayerNorm(d)
         self.fwd_mamba = Mamba(d, cfg.mamba)
         self.bwd_mamba = Mamba(d, cfg.mamba)
-        self.down = DecomposedDown(d, kernel, stride)
+        self.down = DecomposedDown(d, kernel, stride, cfg.tz_kernel_z)
         self.global_mamba = Mamba(d, cfg.mamba)
         self.norm_global = nn.LayerNorm(d)
-        self.up = DecomposedUp(d, kernel, stride)
+        self.up = DecomposedUp(d, kernel, stride, cfg.tz_kernel_z)
 
     def local(self, x: SparseTensor) -> Tensor:
         """Bidirectional Mamba inside each frustum -> V_local features (N, C)."""

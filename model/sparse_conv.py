@@ -3,8 +3,9 @@
 A `Plane` names the two spatial axes the 2D kernel slides over; the remaining spatial axis is folded into the
 batch, so sites in different batches or different slices of that third axis never interact.
 
-Semantics match a dense convolution restricted to active sites (as spconv): padding p = K // 2 on both plane
-axes, kernel index k = (k0, k1), flat index k0 * K + k1, k0 along the plane's first axis.
+Semantics match a dense convolution restricted to active sites (as spconv). A kernel is (K0, K1): K0 along
+the plane's first axis, K1 along its second (an int K means (K, K)); padding p_i = K_i // 2; kernel index
+k = (k0, k1), flat index k0 * K1 + k1.
 - strided conv: output extent floor((L + 2p - K) / s) + 1 per plane axis; output sites are the positions o
   reached by an active input at o * s - p + k; out[o] = sum_k W_k^T x[o * s - p + k] (+ bias).
 - submanifold conv: output sites are exactly the input sites, same formula with s = 1.
@@ -52,8 +53,8 @@ class Rulebook:
 
     in_idx: Tensor  # (P,) int64 rows of the conv's input
     out_idx: Tensor  # (P,) int64 rows of the conv's output
-    offset_ptr: tuple[int, ...]  # (K*K + 1,) pairs of flat kernel offset k are [ptr[k], ptr[k+1])
-    kernel: int
+    offset_ptr: tuple[int, ...]  # (K0*K1 + 1,) pairs of flat kernel offset k are [ptr[k], ptr[k+1])
+    kernel: tuple[int, int]
     plane: Plane
     in_coords: Tensor  # (N, 4) int64 input sites, sorted by linear_key
     in_shape: tuple[int, int, int]  # (R, THETA, Z) of the input grid
@@ -81,14 +82,21 @@ def _key_strides(shape: tuple[int, int, int]) -> tuple[int, int, int, int]:
     return n_t * n_r * n_z, n_z, n_r * n_z, 1
 
 
+def as_kernel(kernel: int | tuple[int, int]) -> tuple[int, int]:
+    """An int K means (K, K); both extents must be >= 1."""
+    k = (kernel, kernel) if isinstance(kernel, int) else (int(kernel[0]), int(kernel[1]))
+    if min(k) < 1:
+        raise ValueError(f"kernel extents must be >= 1, got {kernel}")
+    return k
+
+
 def conv_out_shape(
-    shape: tuple[int, int, int], kernel: int, stride: tuple[int, int], plane: Plane
+    shape: tuple[int, int, int], kernel: int | tuple[int, int], stride: tuple[int, int], plane: Plane
 ) -> tuple[int, int, int]:
-    """Grid extent after a strided conv: floor((L + 2p - K) / s) + 1 on both plane axes."""
+    """Grid extent after a strided conv: floor((L + 2p - K) / s) + 1 on each plane axis."""
     out = list(shape)
-    pad = kernel // 2
-    for ax, s in zip(plane.axes, stride, strict=True):
-        out[ax - 1] = (shape[ax - 1] + 2 * pad - kernel) // s + 1
+    for ax, k, s in zip(plane.axes, as_kernel(kernel), stride, strict=True):
+        out[ax - 1] = (shape[ax - 1] + 2 * (k // 2) - k) // s + 1
         if out[ax - 1] < 1:
             raise ValueError(f"grid extent {shape[ax - 1]} too small for kernel {kernel}")
     return out[0], out[1], out[2]
@@ -114,27 +122,28 @@ def build_strided_rulebook(
     coords: Tensor,
     shape: tuple[int, int, int],
     batch_size: int,
-    kernel: int,
+    kernel: int | tuple[int, int],
     stride: tuple[int, int],
     plane: Plane,
 ) -> Rulebook:
     """Rule book of a (non-submanifold) strided conv; coords (N, 4) int64, any row order."""
+    kernel = as_kernel(kernel)
     out_shape = conv_out_shape(shape, kernel, stride, plane)
-    pad, n = kernel // 2, coords.shape[0]
-    dev = coords.device
-    ks = torch.arange(kernel, device=dev)
+    n, dev = coords.shape[0], coords.device
+    k0, k1 = kernel
     out_pos, valid = [], []
-    for ax, s in zip(plane.axes, stride, strict=True):
-        q = coords[:, ax].unsqueeze(0) + (pad - ks).unsqueeze(1)  # (K, N) = o * s when valid
-        out_pos.append(torch.div(q, s, rounding_mode="floor"))  # (K, N)
+    for ax, k, s in zip(plane.axes, kernel, stride, strict=True):
+        ks = torch.arange(k, device=dev)
+        q = coords[:, ax].unsqueeze(0) + (k // 2 - ks).unsqueeze(1)  # (K_i, N) = o * s when valid
+        out_pos.append(torch.div(q, s, rounding_mode="floor"))  # (K_i, N)
         valid.append((q >= 0) & (q % s == 0) & (q < out_shape[ax - 1] * s))
-    ok = (valid[0].unsqueeze(1) & valid[1].unsqueeze(0)).view(kernel * kernel, n)  # (KK, N)
+    ok = (valid[0].unsqueeze(1) & valid[1].unsqueeze(0)).view(k0 * k1, n)  # (K0 K1, N)
     kk, site = ok.nonzero().unbind(1)  # (P,), (P,) grouped by kk
     st = _key_strides(out_shape)
     (a0, a1), fold = plane.axes, plane.fold_axis
     base = coords[:, BATCH] * st[BATCH] + coords[:, fold] * st[fold]  # (N,) key with plane axes at 0
-    o0 = out_pos[0].view(-1).index_select(0, torch.div(kk, kernel, rounding_mode="floor") * n + site)  # (P,)
-    o1 = out_pos[1].view(-1).index_select(0, (kk % kernel) * n + site)  # (P,)
+    o0 = out_pos[0].view(-1).index_select(0, torch.div(kk, k1, rounding_mode="floor") * n + site)  # (P,)
+    o1 = out_pos[1].view(-1).index_select(0, (kk % k1) * n + site)  # (P,)
     cand = base.index_select(0, site) + o0 * st[a0] + o1 * st[a1]  # (P,) output keys of the candidate pairs
     sorted_keys, perm = torch.sort(cand)
     is_new = torch.ones_like(sorted_keys, dtype=torch.bool)
@@ -148,7 +157,7 @@ def build_strided_rulebook(
 
 
 def _neighbour_keys(
-    keys: Tensor, coords: Tensor, shape: tuple[int, int, int], kernel: int, plane: Plane
+    keys: Tensor, coords: Tensor, shape: tuple[int, int, int], kernel: tuple[int, int], plane: Plane
 ) -> tuple[Tensor, Tensor]:
     """Keys of all sites' plane neighbours and whether they are inside the grid: (KK, N) int64, (KK, N) bool.
 
@@ -156,33 +165,35 @@ def _neighbour_keys(
     """
     n, dev = coords.shape[0], coords.device
     st = _key_strides(shape)
-    d = torch.arange(kernel, device=dev) - kernel // 2  # (K,) offset k - p
-    (a0, a1) = plane.axes
-    nb0 = coords[:, a0].unsqueeze(0) + d.unsqueeze(1)  # (K, N) neighbour coordinate on the first axis
-    nb1 = coords[:, a1].unsqueeze(0) + d.unsqueeze(1)  # (K, N) on the second axis
+    (a0, a1), (k0, k1) = plane.axes, kernel
+    d0 = torch.arange(k0, device=dev) - k0 // 2  # (K0,) offset k - p on the first axis
+    d1 = torch.arange(k1, device=dev) - k1 // 2  # (K1,) on the second axis
+    nb0 = coords[:, a0].unsqueeze(0) + d0.unsqueeze(1)  # (K0, N) neighbour coordinate on the first axis
+    nb1 = coords[:, a1].unsqueeze(0) + d1.unsqueeze(1)  # (K1, N) on the second axis
     in0 = (nb0 >= 0) & (nb0 < shape[a0 - 1])
     in1 = (nb1 >= 0) & (nb1 < shape[a1 - 1])
-    shift = (d * st[a0]).view(kernel, 1) + (d * st[a1]).view(1, kernel)  # (K, K)
-    nkey = keys.view(1, 1, n) + shift.unsqueeze(2)  # (K, K, N)
-    inside = in0.unsqueeze(1) & in1.unsqueeze(0)  # (K, K, N)
-    return nkey.view(kernel * kernel, n), inside.view(kernel * kernel, n)
+    shift = (d0 * st[a0]).view(k0, 1) + (d1 * st[a1]).view(1, k1)  # (K0, K1)
+    nkey = keys.view(1, 1, n) + shift.unsqueeze(2)  # (K0, K1, N)
+    inside = in0.unsqueeze(1) & in1.unsqueeze(0)  # (K0, K1, N)
+    return nkey.view(k0 * k1, n), inside.view(k0 * k1, n)
 
 
 def build_subm_rulebook(
-    coords: Tensor, shape: tuple[int, int, int], batch_size: int, kernel: int, plane: Plane
+    coords: Tensor, shape: tuple[int, int, int], batch_size: int, kernel: int | tuple[int, int], plane: Plane
 ) -> Rulebook:
     """Rule book of a submanifold conv (output sites = input sites); coords (N, 4) int64, unique; K odd.
 
     Only the offsets before the centre are searched: the pair (i <- j) at offset d is the pair (j <- i) at
     offset -d (flat index KK - 1 - k), and the centre pairs are the identity.
     """
+    kernel = as_kernel(kernel)
     n, dev = coords.shape[0], coords.device
     keys = linear_key(coords, shape)  # (N,)
     perm: Tensor | None = None
     if n > 1 and not bool((keys[1:] > keys[:-1]).all()):
         keys, perm = torch.sort(keys)
     sorted_coords = coords if perm is None else coords.index_select(0, perm)
-    centre = kernel * kernel // 2
+    centre = kernel[0] * kernel[1] // 2
     nkey, inside = _neighbour_keys(keys, sorted_coords, shape, kernel, plane)
     nkey, inside = nkey[:centre], inside[:centre]  # (c, N) offsets before the centre
     if n == 0:
@@ -239,26 +250,27 @@ def _init_params(weight: Tensor, bias: Tensor | None, fan_in: int) -> None:
 
 
 class SparseConv2d(nn.Module):
-    """Sparse (or submanifold) 2D conv on `plane`; weight (K*K, in_ch, out_ch)."""
+    """Sparse (or submanifold) 2D conv on `plane`; weight (K0*K1, in_ch, out_ch)."""
 
     def __init__(
         self,
         in_ch: int,
         out_ch: int,
-        kernel: int,
+        kernel: int | tuple[int, int],
         stride: tuple[int, int],
         plane: Plane,
         subm: bool = False,
         bias: bool = False,
     ) -> None:
         super().__init__()
-        if subm and (tuple(stride) != (1, 1) or kernel % 2 == 0):
+        k = as_kernel(kernel)
+        if subm and (tuple(stride) != (1, 1) or k[0] % 2 == 0 or k[1] % 2 == 0):
             raise ValueError(f"a submanifold conv needs stride (1, 1) and an odd kernel: {stride}, {kernel}")
-        self.kernel, self.plane, self.subm = kernel, plane, subm
+        self.kernel, self.plane, self.subm = k, plane, subm
         self.stride = (int(stride[0]), int(stride[1]))
-        self.weight = nn.Parameter(torch.empty(kernel * kernel, in_ch, out_ch))
+        self.weight = nn.Parameter(torch.empty(k[0] * k[1], in_ch, out_ch))
         self.bias = nn.Parameter(torch.empty(out_ch)) if bias else None
-        _init_params(self.weight, self.bias, kernel * kernel * in_ch)
+        _init_params(self.weight, self.bias, k[0] * k[1] * in_ch)
 
     def rulebook(self, x: SparseTensor) -> Rulebook:
         if self.subm:
@@ -281,14 +293,20 @@ class SparseConv2d(nn.Module):
 
 
 class SparseInverseConv2d(nn.Module):
-    """Transposed conv onto a paired conv's input sites via its rule book reversed; weight (K*K, in, out)."""
+    """Transposed conv onto a paired conv's input sites via its rule book reversed.
 
-    def __init__(self, in_ch: int, out_ch: int, kernel: int, plane: Plane, bias: bool = False) -> None:
+    weight (K0*K1, in_ch, out_ch), with the paired conv's kernel.
+    """
+
+    def __init__(
+        self, in_ch: int, out_ch: int, kernel: int | tuple[int, int], plane: Plane, bias: bool = False
+    ) -> None:
         super().__init__()
-        self.kernel, self.plane = kernel, plane
-        self.weight = nn.Parameter(torch.empty(kernel * kernel, in_ch, out_ch))
+        k = as_kernel(kernel)
+        self.kernel, self.plane = k, plane
+        self.weight = nn.Parameter(torch.empty(k[0] * k[1], in_ch, out_ch))
         self.bias = nn.Parameter(torch.empty(out_ch)) if bias else None
-        _init_params(self.weight, self.bias, kernel * kernel * in_ch)
+        _init_params(self.weight, self.bias, k[0] * k[1] * in_ch)
 
     def forward(self, y: SparseTensor, rulebook: Rulebook) -> SparseTensor:
         """y (M, in_ch) at the rule book's output sites -> (N, out_ch) at its input sites (same row order)."""

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from model.decomposed import DecomposedDown, DecomposedUp
-from model.sparse_conv import Plane, SparseConv2d, SparseInverseConv2d, conv_out_shape
+from model.sparse_conv import Plane, SparseConv2d, SparseInverseConv2d, as_kernel, conv_out_shape
 from model.sparse_tensor import SparseTensor, linear_key, to_dense
 
 SHAPE = (12, 20, 6)  # (R, THETA, Z)
@@ -45,9 +47,9 @@ def unfold(planes: Tensor, plane: Plane, batch: int) -> Tensor:
     return x.permute(0, 2, 1, 3, 4)
 
 
-def dense_weight(weight: Tensor, kernel: int, transposed: bool) -> Tensor:
-    """(K*K, Cin, Cout) -> (Cout, Cin, K, K) for conv2d or (Cin, Cout, K, K) for conv_transpose2d."""
-    w = weight.detach().reshape(kernel, kernel, *weight.shape[1:])  # (K, K, Cin, Cout)
+def dense_weight(weight: Tensor, kernel: tuple[int, int], transposed: bool) -> Tensor:
+    """(K0*K1, Cin, Cout) -> (Cout, Cin, K0, K1) for conv2d or (Cin, Cout, K0, K1) for conv_transpose2d."""
+    w = weight.detach().reshape(*kernel, *weight.shape[1:])  # (K0, K1, Cin, Cout)
     return w.permute(2, 3, 0, 1) if transposed else w.permute(3, 2, 0, 1)
 
 
@@ -60,10 +62,11 @@ def at_sites(dense: Tensor, coords: Tensor) -> Tensor:
 def dense_conv(x: SparseTensor, conv: SparseConv2d) -> tuple[Tensor, Tensor]:
     """Dense reference: (B, Cout, R', T', Z') values and the (B, R', T', Z') reachable-site mask."""
     k, s = conv.kernel, conv.stride
+    pad = (k[0] // 2, k[1] // 2)
     w = dense_weight(conv.weight, k, transposed=False)
-    out = F.conv2d(fold(to_dense(x), conv.plane), w, stride=s, padding=k // 2)
+    out = F.conv2d(fold(to_dense(x), conv.plane), w, stride=s, padding=pad)
     occ = fold(to_dense(x.replace(torch.ones(x.num_sites, 1, dtype=x.features.dtype))), conv.plane)
-    reach = F.conv2d(occ, torch.ones(1, 1, k, k, dtype=occ.dtype), stride=s, padding=k // 2) > 0
+    reach = F.conv2d(occ, torch.ones(1, 1, *k, dtype=occ.dtype), stride=s, padding=pad) > 0
     return unfold(out, conv.plane, x.batch_size), unfold(reach, conv.plane, x.batch_size)[:, 0]
 
 
@@ -72,13 +75,16 @@ def assert_sorted_unique(coords: Tensor, shape: tuple[int, int, int]) -> None:
     assert bool((keys[1:] > keys[:-1]).all())
 
 
-CASES = [(p, k, s) for p in Plane for k in (3, 5) for s in ((2, 2), (3, 3), (4, 4), (2, 1), (1, 3), (1, 1))]
+CASES = [
+    *[(p, k, s) for p in Plane for k in (3, 5) for s in ((2, 2), (3, 3), (4, 4), (2, 1), (1, 3), (1, 1))],
+    *[(p, k, s) for p in Plane for k in ((3, 1), (5, 3), (1, 3)) for s in ((2, 1), (2, 2), (1, 1))],
+]
 
 
 @pytest.mark.parametrize(("plane", "kernel", "stride"), CASES)
-def test_strided_conv_matches_dense(plane: Plane, kernel: int, stride: tuple[int, int]) -> None:
+def test_strided_conv_matches_dense(plane: Plane, kernel: int | tuple[int, int], stride: tuple[int, int]):
     torch.manual_seed(0)
-    x = random_sparse(SHAPE, BATCH, 0.15, 3, seed=kernel + 10 * stride[0] + stride[1])
+    x = random_sparse(SHAPE, BATCH, 0.15, 3, seed=sum(as_kernel(kernel)) + 10 * stride[0] + stride[1])
     conv = SparseConv2d(3, 4, kernel, stride, plane, bias=True).double()
     y, rb = conv(x)
     ref, reach = dense_conv(x, conv)
@@ -90,20 +96,21 @@ def test_strided_conv_matches_dense(plane: Plane, kernel: int, stride: tuple[int
     assert torch.equal(y.coords, ref_sites) and y.num_sites > 0
     ref_vals = at_sites(ref, y.coords) + conv.bias.detach()
     torch.testing.assert_close(y.features, ref_vals)
-    assert rb.num_pairs == rb.offset_ptr[-1] and len(rb.offset_ptr) == kernel * kernel + 1
+    assert rb.num_pairs == rb.offset_ptr[-1] and len(rb.offset_ptr) == math.prod(as_kernel(kernel)) + 1
 
 
 @pytest.mark.parametrize("plane", list(Plane))
-@pytest.mark.parametrize("kernel", [3, 5])
-def test_subm_conv_matches_dense(plane: Plane, kernel: int) -> None:
+@pytest.mark.parametrize("kernel", [3, 5, (3, 1), (1, 5), (5, 3)])
+def test_subm_conv_matches_dense(plane: Plane, kernel: int | tuple[int, int]) -> None:
     torch.manual_seed(1)
-    x = random_sparse(SHAPE, BATCH, 0.2, 3, seed=kernel)
+    x = random_sparse(SHAPE, BATCH, 0.2, 3, seed=sum(as_kernel(kernel)))
     conv = SparseConv2d(3, 5, kernel, (1, 1), plane, subm=True).double()
     y, rb = conv(x)
     assert torch.equal(y.coords, x.coords) and y.spatial_shape == SHAPE
     ref, _ = dense_conv(x, conv)
     torch.testing.assert_close(y.features, at_sites(ref, x.coords))
-    assert rb.offset_ptr[(kernel * kernel) // 2 + 1] - rb.offset_ptr[(kernel * kernel) // 2] == x.num_sites
+    centre = math.prod(as_kernel(kernel)) // 2
+    assert rb.offset_ptr[centre + 1] - rb.offset_ptr[centre] == x.num_sites
 
 
 def test_subm_conv_unsorted_input() -> None:
@@ -121,11 +128,13 @@ def test_subm_conv_unsorted_input() -> None:
 
 def dense_inverse(y: SparseTensor, inv: SparseInverseConv2d, stride: tuple[int, int], in_shape) -> Tensor:
     """Dense transposed conv back to in_shape: (B, Cout, R, T, Z)."""
-    k, pad = inv.kernel, inv.kernel // 2
+    k = inv.kernel
+    pad = (k[0] // 2, k[1] // 2)
     folded = fold(to_dense(y), inv.plane)
     lengths = [in_shape[ax - 1] for ax in inv.plane.axes]
     out_pad = [
-        L - ((o - 1) * s - 2 * pad + k) for L, o, s in zip(lengths, folded.shape[2:], stride, strict=True)
+        L - ((o - 1) * s - 2 * p + ki)
+        for L, o, s, p, ki in zip(lengths, folded.shape[2:], stride, pad, k, strict=True)
     ]
     w = dense_weight(inv.weight, k, transposed=True)
     out = F.conv_transpose2d(folded, w, stride=stride, padding=pad, output_padding=tuple(out_pad))
@@ -134,9 +143,9 @@ def dense_inverse(y: SparseTensor, inv: SparseInverseConv2d, stride: tuple[int, 
 
 
 @pytest.mark.parametrize(("plane", "kernel", "stride"), CASES)
-def test_inverse_conv_matches_dense(plane: Plane, kernel: int, stride: tuple[int, int]) -> None:
+def test_inverse_conv_matches_dense(plane: Plane, kernel: int | tuple[int, int], stride: tuple[int, int]):
     torch.manual_seed(3)
-    x = random_sparse(SHAPE, BATCH, 0.15, 3, seed=100 + kernel + stride[0])
+    x = random_sparse(SHAPE, BATCH, 0.15, 3, seed=100 + sum(as_kernel(kernel)) + stride[0])
     _, rb = SparseConv2d(3, 4, kernel, stride, plane).double()(x)
     y = SparseTensor(torch.randn(rb.num_out, 4, dtype=torch.float64), rb.out_coords, rb.out_shape, BATCH)
     inv = SparseInverseConv2d(4, 2, kernel, plane, bias=True).double()
@@ -176,13 +185,15 @@ def test_slices_do_not_interact(plane: Plane, subm: bool) -> None:
     assert bool((y0.coords[changed, fold_ax] == x.coords[j, fold_ax]).all())
 
 
-@pytest.mark.parametrize(("kernel", "stride"), [(3, 1), (3, 2), (5, 4), (3, 3)])
-def test_decomposed_round_trip(kernel: int, stride: int) -> None:
+@pytest.mark.parametrize(
+    ("kernel", "stride", "tz_z"), [(3, 1, 1), (3, 2, 1), (5, 4, 1), (3, 3, 3), (5, 2, 5)]
+)
+def test_decomposed_round_trip(kernel: int, stride: int, tz_z: int) -> None:
     torch.manual_seed(4)
     shape = (24, 30, 8)
     x = random_sparse(shape, BATCH, 0.05, 8, seed=stride, dtype=torch.float32)
     x = x.replace(x.features.requires_grad_())
-    down, up = DecomposedDown(8, kernel, stride), DecomposedUp(8, kernel, stride)
+    down, up = DecomposedDown(8, kernel, stride, tz_z), DecomposedUp(8, kernel, stride, tz_z)
     y, ctx = down(x)
     assert_sorted_unique(y.coords, y.spatial_shape)
     if stride == 1:
@@ -201,7 +212,7 @@ def test_decomposed_round_trip(kernel: int, stride: int) -> None:
 
 @pytest.mark.parametrize("stride", [1, 2])
 def test_decomposed_empty_and_single_site(stride: int) -> None:
-    down, up = DecomposedDown(4, 3, stride), DecomposedUp(4, 3, stride)
+    down, up = DecomposedDown(4, 3, stride, 1), DecomposedUp(4, 3, stride, 1)
     for n in (0, 1):
         coords = torch.tensor([[1, 3, 4, 2]], dtype=torch.int64)[:n]
         x = SparseTensor(torch.randn(n, 4, requires_grad=True), coords, (10, 10, 4), 2)
@@ -217,7 +228,7 @@ def test_rejects_bad_arguments() -> None:
     with pytest.raises(ValueError, match="submanifold"):
         SparseConv2d(2, 2, 3, (2, 2), Plane.RZ, subm=True)
     with pytest.raises(ValueError, match="odd kernel"):
-        DecomposedDown(4, 4, 2)
+        DecomposedDown(4, 4, 2, 1)
     x = random_sparse(SHAPE, BATCH, 0.1, 2, seed=1)
     _, rb = SparseConv2d(2, 2, 3, (2, 2), Plane.RZ)(x.replace(x.features.float()))
     with pytest.raises(ValueError, match="rule book"):
