@@ -1,0 +1,40 @@
+# PHiM detection server, GPU image. Build: docker build -t phim-server .
+# Run:   docker run --gpus all -p 8080:8080 -p 7447:7447 -e PHIM_ZENOH_LISTEN=tcp/0.0.0.0:7447 phim-server
+# The CUDA build of PyTorch comes from the base image; `pip install` keeps it (constraints file) and adds the
+# server dependencies only.
+FROM pytorch/pytorch:2.5.1-cuda12.4-cudnn9-runtime
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+
+WORKDIR /opt/phim
+COPY pyproject.toml README.md ./
+COPY model ./model
+COPY server ./server
+COPY clients ./clients
+
+# Install the package and its server extras without touching the base image's torch.
+RUN pip freeze | grep -i '^torch==' > /tmp/torch-constraint.txt \
+ && pip install -c /tmp/torch-constraint.txt ".[server]" \
+ && python -c "import torch, fastapi, zenoh; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
+
+# Weights inside the image: the default model as a checkpoint file (switch to the trained one when it ships).
+RUN python -m server.default_model --out /opt/phim/weights/phim-default.pt
+
+RUN useradd --create-home --uid 10001 phim
+USER phim
+
+ENV PHIM_CHECKPOINT=/opt/phim/weights/phim-default.pt \
+    PHIM_PORT=8080 \
+    PHIM_DEVICE=auto \
+    PHIM_ZENOH_LISTEN=tcp/0.0.0.0:7447
+EXPOSE 8080 7447
+
+HEALTHCHECK --interval=10s --timeout=5s --start-period=120s --retries=3 \
+    CMD ["python", "-m", "server.healthcheck"]
+
+# SIGTERM (docker stop): stop taking sectors, answer those in flight, exit 0. Give it time: docker stop -t 30.
+STOPSIGNAL SIGTERM
+CMD ["phim", "serve", "--host", "0.0.0.0"]

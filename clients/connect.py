@@ -1,0 +1,48 @@
+"""Build a client for a transport from plain options (the CLI commands share this)."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from clients.base import DetectorClient
+
+
+class Transport(enum.StrEnum):
+    HTTP = "http"
+    ZENOH = "zenoh"
+
+
+@dataclass(frozen=True)
+class ConnectConfig:
+    transport: Transport = Transport.HTTP
+    url: str = "http://127.0.0.1:8080"  # HTTP address; over zenoh used for model info and ending streams
+    zenoh_connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    zenoh_mode: str = "client"
+    zenoh_config_file: str | None = None
+    key_prefix: str = "phim/v1"
+    timeout_s: float = 10.0
+    use_http_control: bool = True  # over zenoh, reach model info / end stream at `url`
+
+
+def make_client(cfg: ConnectConfig, max_connections: int = 256) -> DetectorClient:
+    """The transport's client (imported here: `phim serve` needs neither httpx nor the client code)."""
+    from clients.http_client import HttpClient, HttpConfig
+    from clients.zenoh_client import ZenohClient, ZenohClientConfig
+
+    if cfg.transport is Transport.HTTP:
+        return HttpClient(
+            config=HttpConfig(url=cfg.url, timeout_s=cfg.timeout_s, max_connections=max_connections)
+        )
+    return ZenohClient(
+        ZenohClientConfig(
+            connect=cfg.zenoh_connect,
+            mode=cfg.zenoh_mode,
+            key_prefix=cfg.key_prefix,
+            timeout_s=cfg.timeout_s,
+            config_file=cfg.zenoh_config_file,
+            http_url=cfg.url if cfg.use_http_control else None,
+        )
+    )

@@ -1,0 +1,78 @@
+"""PNG plots of a load test (matplotlib, Agg): latency CDF per step; for a sweep, throughput and p99 against
+the number of vehicles."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from clients.loadtest.report import LoadTestReport
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_plots(report: LoadTestReport, folder: Path) -> list[Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    out = [latency_plot(report, folder / f"latency_{report.transport}.png")]
+    if len(report.steps) > 1:
+        out.append(sweep_plot(report, folder / f"sweep_{report.transport}.png"))
+    return out
+
+
+def latency_plot(report: LoadTestReport, path: Path) -> Path:
+    """Left: histogram of client latency; right: CDF with the tail stretched (1 - F on a log axis)."""
+    plt = _pyplot()
+    fig, (hist, cdf) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for s in report.steps:
+        lat = np.sort(np.asarray(s.latencies_ms))
+        if not lat.size:
+            continue
+        label = f"{s.vehicles} vehicles"
+        hist.hist(lat, bins=60, histtype="step", label=label)
+        tail = 1.0 - np.arange(lat.size) / lat.size  # (n,) fraction of sectors slower than each value
+        cdf.plot(lat, tail, label=label)
+    bound = report.config.p99_bound_ms
+    for ax in (hist, cdf):
+        ax.axvline(bound, color="grey", linestyle="--", linewidth=1)
+        ax.set_xlabel("latency from scheduled send (ms)")
+        ax.legend(fontsize=8)
+    hist.set_ylabel("sectors")
+    cdf.set_yscale("log")
+    cdf.set_ylabel("fraction slower (1 - CDF)")
+    fig.suptitle(f"PHiM {report.transport} {report.mode}-loop latency ({report.source})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def sweep_plot(report: LoadTestReport, path: Path) -> Path:
+    plt = _pyplot()
+    v = [s.vehicles for s in report.steps]
+    fig, (thr, p99) = plt.subplots(1, 2, figsize=(11, 4.2))
+    thr.plot(v, [s.offered_sectors_per_s for s in report.steps], "--", color="grey", label="offered")
+    thr.plot(v, [s.achieved_sectors_per_s for s in report.steps], "o-", label="answered")
+    thr.plot(v, [s.predictions_per_s for s in report.steps], "s-", label="predictions")
+    thr.set_ylabel("sectors / s")
+    p99.plot(v, [s.p99_ms for s in report.steps], "o-", label="client p99")
+    p99.plot(v, [s.server_total_p99_ms for s in report.steps], "s-", label="server total p99")
+    p99.axhline(report.config.p99_bound_ms, color="grey", linestyle="--", label="bound")
+    p99.set_yscale("log")
+    p99.set_ylabel("latency (ms)")
+    for ax in (thr, p99):
+        ax.set_xlabel("vehicles")
+        ax.legend(fontsize=8)
+    held = report.max_vehicles_held
+    fig.suptitle(f"PHiM {report.transport} sweep: most vehicles held = {held}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

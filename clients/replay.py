@@ -1,0 +1,176 @@
+"""`phim replay`: stream a recorded drive to a server, one stream, at sensor rate or as fast as answered.
+
+Each scan is cut into the model's sectors in sweep order (clients.sectorizer.split_scan) and sent in order;
+every sector's answer (detections or the server's error) becomes one record of the prediction file
+(clients.predictions). With `frames_dir`, one bird's-eye-view PNG per scan after its last sector: points,
+the predicted boxes and, for KITTI scans with label_2 + calib beside them, the labels.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from clients.base import DetectorClient, ServerError
+from clients.connect import ConnectConfig, make_client
+from clients.kitti_labels import kitti_labels_for
+from clients.pictures import BoxSet, draw_bev
+from clients.predictions import PredictionRecord, PredictionWriter
+from clients.recordings import Scan, find_scans, read_scan
+from clients.sectorizer import MODEL_FIELDS, split_scan
+from server.protocol import SectorMessage
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    source: Path  # a folder of scans (or one scan file)
+    predictions: Path  # the JSON-lines prediction file to write
+    connect: ConnectConfig = field(default_factory=ConnectConfig)
+    stream_id: str = "replay"
+    turns_per_s: float = 10.0  # sensor rate; 0: as fast as the server answers
+    sectors_per_turn: int | None = None  # None: ask the server
+    frames_dir: Path | None = None  # BEV PNGs, one per scan
+    max_scans: int | None = None
+    every: int = 1  # keep every n-th point
+    end_stream: bool = True  # end the stream on the server when done
+
+
+@dataclass
+class ReplaySummary:
+    scans: int = 0
+    sectors: int = 0
+    ok: int = 0
+    errors: int = 0
+    late_sectors: int = 0  # sent after their due time (the server was slower than the sensor)
+    frames: list[Path] = field(default_factory=list)
+
+
+def replay(cfg: ReplayConfig) -> ReplaySummary:
+    paths = find_scans(cfg.source)[: cfg.max_scans]
+    if not paths:
+        raise FileNotFoundError(f"{cfg.source}: no scans (.bin, .pcd.bin, .npz)")
+    with make_client(cfg.connect) as client:
+        info = _model_info(client)
+        spt = cfg.sectors_per_turn or int(info.get("sectors_per_turn", 4))
+        header = {
+            "source": str(cfg.source),
+            "stream_id": cfg.stream_id,
+            "sectors_per_turn": spt,
+            "model": info,
+        }
+        with PredictionWriter(cfg.predictions, header) as writer:
+            summary = _run(client, cfg, paths, spt, writer)
+        if cfg.end_stream:
+            client.end_stream(cfg.stream_id)
+    return summary
+
+
+def _model_info(client: DetectorClient) -> dict[str, Any]:
+    try:
+        info = client.model_info()
+    except Exception as e:  # zenoh without an HTTP address: the file then says so
+        log.warning("model info unavailable: %s", e)
+        return {}
+    return {k: info.get(k) for k in ("name", "version", "config", "weights", "classes", "sectors_per_turn")}
+
+
+def _run(
+    client: DetectorClient, cfg: ReplayConfig, paths: list[Path], spt: int, w: PredictionWriter
+) -> ReplaySummary:
+    summary = ReplaySummary()
+    period = 1.0 / (cfg.turns_per_s * spt) if cfg.turns_per_s > 0 else 0.0
+    t0, seq = time.monotonic(), 0
+    for scan_index, path in enumerate(paths):
+        scan = read_scan(path)
+        sectors = split_scan(scan.points, scan.fields, spt, scan.spin)
+        last: PredictionRecord | None = None
+        for position, sector in enumerate(sectors):
+            due = t0 + seq * period
+            lag = due - time.monotonic()
+            if lag > 0:
+                time.sleep(lag)
+            elif period and lag < -period:
+                summary.late_sectors += 1
+            msg = SectorMessage(
+                cfg.stream_id,
+                seq,
+                sector.index,
+                _stamp(scan, seq, period),
+                sector.points[:: cfg.every],
+                MODEL_FIELDS,
+                reset=seq == 0,
+            )
+            last = _send(client, msg, scan.name, scan_index, position, position == len(sectors) - 1)
+            w.write(last)
+            summary.sectors += 1
+            summary.ok += last.error is None
+            summary.errors += last.error is not None
+            seq += 1
+        summary.scans += 1
+        if cfg.frames_dir is not None and last is not None:
+            summary.frames.append(draw_scan(cfg.frames_dir, scan, last))
+    return summary
+
+
+def _stamp(scan: Scan, seq: int, period: float) -> int:
+    return (scan.timestamp_ns or 0) + round(seq * (period or 0.025) * 1e9)
+
+
+def _send(
+    client: DetectorClient, msg: SectorMessage, scan: str, scan_index: int, pos: int, last: bool
+) -> PredictionRecord:
+    start = time.monotonic()
+    common: dict[str, Any] = dict(
+        scan=scan,
+        scan_index=scan_index,
+        seq=msg.seq,
+        sector_index=msg.sector_index,
+        position=pos,
+        last_in_scan=last,
+        timestamp_ns=msg.timestamp_ns,
+        points=int(msg.points.shape[0]),
+    )
+    try:
+        r = client.send(msg)
+    except ServerError as e:
+        empty = np.zeros((0, 7), np.float32)
+        return PredictionRecord(
+            **common,
+            context_sectors=0,
+            boxes=empty,
+            scores=np.zeros(0, np.float32),
+            labels=np.zeros(0, np.int32),
+            class_names=(),
+            timings={},
+            latency_ms=(time.monotonic() - start) * 1e3,
+            error={"code": e.code.value, "message": e.message, "field": e.field},
+        )
+    t = r.timings
+    return PredictionRecord(
+        **common,
+        context_sectors=r.context_sectors,
+        boxes=r.boxes,
+        scores=r.scores,
+        labels=r.labels,
+        class_names=r.class_names,
+        timings={"queue_ms": t.queue_ms, "model_ms": t.model_ms, "total_ms": t.total_ms},
+        latency_ms=(time.monotonic() - start) * 1e3,
+    )
+
+
+def draw_scan(folder: Path, scan: Scan, prediction: PredictionRecord) -> Path:
+    labels = kitti_labels_for(scan.path) if scan.path.suffix == ".bin" else None
+    return draw_bev(
+        folder / f"{scan.name}.png",
+        scan.points,
+        BoxSet(prediction.boxes, prediction.class_names, prediction.scores),
+        None if labels is None else BoxSet(labels.boxes, labels.names),
+        title=f"{scan.name} (context {prediction.context_sectors} sectors)",
+    )

@@ -1,0 +1,198 @@
+"""zenoh client: a `get` on `{prefix}/streams/{stream_id}/sector` with a msgpack sector as payload.
+
+The session is a zenoh client (or peer) connecting to the given endpoints (a worker or a router). Gets use
+`CongestionControl.BLOCK` (a reply's QoS follows its query's), and a timeout after which zenoh itself ends the
+get with a `Timeout` error reply (encoding zenoh/bytes, unlike the server's msgpack error replies).
+
+The async path never blocks the event loop: the get runs with a callback handler (zenoh calls it on its own
+thread), which decodes the reply and resolves an asyncio future through `loop.call_soon_threadsafe`; any
+number of gets may be in flight. zenoh has no model-info or end-stream keys: give `http_url` to reach those
+over HTTP; without it `end_stream` makes the stream's next sector a reset and `model_info` raises.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from clients.base import ClientError, DetectorClient, RequestTimeout, TransportError, answer
+from clients.http_client import HttpClient
+from server.protocol import (
+    DetectionsReply,
+    ErrorReply,
+    SectorMessage,
+    ServiceError,
+    decode_response,
+    encode_sector,
+)
+from server.zenoh_transport import MSGPACK, KeySpace, ZenohConfig, open_session
+
+BLOCK = zenoh.CongestionControl.BLOCK
+Outcome = DetectionsReply | ErrorReply | ClientError
+
+
+class NotSupported(ClientError):
+    """The transport has no way to do this (e.g. model info over zenoh without an HTTP address)."""
+
+
+@dataclass(frozen=True)
+class ZenohClientConfig:
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    mode: str = "client"  # "client" (needs a reachable worker or router at open) or "peer"
+    key_prefix: str = "phim/v1"
+    timeout_s: float = 10.0  # per get
+    config_file: str | None = None  # a zenoh JSON5 file (TLS, ...); the fields above override it
+    http_url: str | None = None  # the same server's HTTP address, for model_info / end_stream
+
+    def session_config(self) -> ZenohConfig:
+        return ZenohConfig(
+            mode=self.mode,
+            listen=(),
+            connect=self.connect,
+            multicast_scouting=False,
+            config_file=self.config_file,
+            key_prefix=self.key_prefix,
+        )
+
+
+class ZenohClient(DetectorClient):
+    """The detector over zenoh request/reply. Send one stream's sectors from one client (ordering)."""
+
+    transport = "zenoh"
+
+    def __init__(self, config: ZenohClientConfig | None = None, **overrides: Any):
+        cfg = config or ZenohClientConfig(**overrides)
+        self.config = cfg
+        self.keys = KeySpace(cfg.key_prefix)
+        self._reset_next: set[str] = set()
+        self._lock = threading.Lock()
+        try:
+            self._session: zenoh.Session | None = open_session(cfg.session_config())
+        except zenoh.ZError as e:
+            raise TransportError(
+                f"zenoh: cannot open a {cfg.mode} session to {list(cfg.connect)}: {e}"
+            ) from e
+        self._http = HttpClient(cfg.http_url) if cfg.http_url else None
+
+    # ------------------------------------------------------------------------------------------ sectors
+
+    def send(self, msg: SectorMessage) -> DetectionsReply:
+        replies = self._session_or_fail().get(self._key(msg), payload=self._body(msg), **self._get_options())
+        outcome: Outcome | None = None
+        for reply in replies:  # ends when the worker finalizes the query, or at the timeout
+            if outcome is None:
+                outcome = reply_outcome(reply)
+        return _result(outcome, self._key(msg))
+
+    async def send_async(self, msg: SectorMessage) -> DetectionsReply:
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[Outcome | None] = loop.create_future()
+        pending = _Pending(loop, future)
+        handler = zenoh.handlers.Callback(pending.on_reply, pending.on_done)
+        self._session_or_fail().get(self._key(msg), handler, payload=self._body(msg), **self._get_options())
+        return _result(await future, self._key(msg))
+
+    def _key(self, msg: SectorMessage) -> str:
+        return self.keys.sector(msg.stream_id)
+
+    def _body(self, msg: SectorMessage) -> bytes:
+        with self._lock:
+            if msg.stream_id in self._reset_next:
+                self._reset_next.discard(msg.stream_id)
+                msg = dataclasses.replace(msg, reset=True)
+        return encode_sector(msg)
+
+    def _get_options(self) -> dict[str, Any]:
+        return {"encoding": MSGPACK, "congestion_control": BLOCK, "timeout": self.config.timeout_s}
+
+    # ------------------------------------------------------------------------------------------ control
+
+    def end_stream(self, stream_id: str) -> None:
+        """Over HTTP when `http_url` is given; else the stream's next sector is sent with reset=True (the
+        server drops the old state then, or evicts it when idle)."""
+        if self._http is not None:
+            self._http.end_stream(stream_id)
+            return
+        with self._lock:
+            self._reset_next.add(stream_id)
+
+    def model_info(self) -> dict[str, Any]:
+        if self._http is None:
+            raise NotSupported("zenoh has no model-info key; give ZenohClientConfig.http_url")
+        return self._http.model_info()
+
+    def workers(self, timeout_s: float = 2.0) -> list[str]:
+        """The IDs of the live workers under this prefix (their liveliness tokens)."""
+        head = self.keys.worker("")
+        tokens = self._session_or_fail().liveliness().get(self.keys.worker("*"), timeout=timeout_s)
+        return sorted(str(r.ok.key_expr)[len(head) :] for r in tokens if r.ok is not None)
+
+    def _session_or_fail(self) -> zenoh.Session:
+        if self._session is None:
+            raise TransportError("the client is closed")
+        return self._session
+
+    def close(self) -> None:
+        if self._http is not None:
+            self._http.close()
+        if self._session is not None:
+            session, self._session = self._session, None
+            session.close()
+
+
+def reply_outcome(reply: zenoh.Reply) -> Outcome:
+    """One zenoh reply -> the server's answer (detections or error), or the client-side failure."""
+    if reply.ok is not None:
+        data, is_msgpack = reply.ok.payload.to_bytes(), True
+    else:
+        err = reply.err
+        assert err is not None
+        data, is_msgpack = err.payload.to_bytes(), str(err.encoding).startswith(str(MSGPACK))
+    if not is_msgpack:  # zenoh's own error reply: b"Timeout" when the get's timeout passed
+        if data.strip().lower() == b"timeout":
+            return RequestTimeout("zenoh: no reply before the get's timeout")
+        return TransportError(f"zenoh error reply: {data[:200]!r}")
+    try:
+        return decode_response(data)
+    except ServiceError as e:
+        return TransportError(f"zenoh: the reply is not a PHiM message ({e.message})")
+
+
+def _result(outcome: Outcome | None, key: str) -> DetectionsReply:
+    if outcome is None:
+        raise TransportError(f"zenoh: no worker answered on {key}")
+    if isinstance(outcome, ClientError):
+        raise outcome
+    return answer(outcome)
+
+
+class _Pending:
+    """The callback side of one async get: runs on zenoh's thread, touches only the future's loop."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, future: asyncio.Future[Outcome | None]):
+        self.loop = loop
+        self.future = future
+        self.answered = False
+
+    def on_reply(self, reply: zenoh.Reply) -> None:
+        if not self.answered:
+            self.answered = True
+            self._resolve(reply_outcome(reply))
+
+    def on_done(self) -> None:  # the get ended (finalized or timed out): resolves a get nobody answered
+        self._resolve(None)
+
+    def _resolve(self, outcome: Outcome | None) -> None:
+        with contextlib.suppress(RuntimeError):  # a closed loop: nobody waits for this answer any more
+            self.loop.call_soon_threadsafe(_set, self.future, outcome)
+
+
+def _set(future: asyncio.Future[Outcome | None], outcome: Outcome | None) -> None:
+    if not future.done():
+        future.set_result(outcome)

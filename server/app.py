@@ -1,0 +1,275 @@
+"""The HTTP app (FastAPI): a thin transport over the Worker. Its lifespan owns the model, the worker and the
+zenoh transport; routes decode, submit, await (never blocking the event loop on the model) and encode.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Protocol
+
+from fastapi import FastAPI, Request, Response
+from fastapi.responses import JSONResponse
+
+from model.checkpoint import load_checkpoint
+from model.config import get_config
+from model.runtime import pick_device
+from model.stream import StreamingDetector
+from server.default_model import init_model, load_default_model
+from server.metrics import Metrics
+from server.protocol import (
+    HTTP_STATUS,
+    ErrorCode,
+    ErrorReply,
+    Limits,
+    ServiceError,
+    check_stream_id,
+    decode_sector,
+    encode_error,
+    encode_reply,
+    error_to_json,
+    reply_to_json,
+)
+from server.settings import Settings
+from server.warmup import package_version
+from server.worker import Worker
+
+log = logging.getLogger(__name__)
+
+MSGPACK = "application/msgpack"
+MSGPACK_TYPES = (MSGPACK, "application/x-msgpack", "application/vnd.msgpack")
+
+
+class Closeable(Protocol):
+    def close(self) -> None: ...
+
+
+@dataclass
+class Services:
+    settings: Settings
+    worker: Worker
+    metrics: Metrics
+    limits: Limits
+
+
+def build_detector(settings: Settings) -> tuple[StreamingDetector, str]:
+    """The model the settings ask for, on its device -> (detector, where its weights come from)."""
+    device = pick_device(settings.device)
+    if settings.checkpoint is None:
+        model, source = init_model(settings.config, device) if settings.config else load_default_model(device)
+    else:
+        expected = get_config(settings.config) if settings.config else None
+        model, source = (
+            load_checkpoint(settings.checkpoint, expected, device),
+            f"checkpoint {settings.checkpoint}",
+        )
+    det = StreamingDetector(model)
+    log.info(
+        "model: config=%s device=%s scan=%s weights=%s",
+        det.cfg.name,
+        det.device,
+        det.cfg.backbone.mamba.scan.value,
+        source,
+    )
+    return det, source
+
+
+def start_zenoh(settings: Settings, worker: Worker) -> Closeable:
+    try:
+        from server.zenoh_transport import ZenohTransport
+    except ImportError as e:
+        raise RuntimeError(f"zenoh transport unavailable ({e}); serve with --no-zenoh") from e
+
+    transport = ZenohTransport(
+        partial(worker.submit, transport="zenoh"),
+        settings.zenoh_config(),
+        worker.worker_id,
+        settings.limits(),
+    )
+    transport.start()
+    log.info(
+        "zenoh: mode=%s listen=%s connect=%s",
+        settings.zenoh_mode,
+        settings.zenoh_listen,
+        settings.zenoh_connect,
+    )
+    return transport
+
+
+def create_app(
+    settings: Settings, detector: StreamingDetector | None = None, model_source: str = "given detector"
+) -> FastAPI:
+    """The app; `detector` (already built) skips loading the model the settings name (tests share one)."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        det, source = (
+            (detector, model_source)
+            if detector is not None
+            else await asyncio.to_thread(build_detector, settings)
+        )
+        metrics = Metrics()
+        worker = Worker(det, settings.worker_config(source), metrics)
+        worker.start()
+        zenoh: Closeable | None = None
+        try:
+            if settings.zenoh_enabled:
+                zenoh = await asyncio.to_thread(start_zenoh, settings, worker)
+            app.state.services = Services(settings, worker, metrics, settings.limits())
+            yield
+        finally:
+            log.info("shutting down: draining the worker (up to %.1f s)", settings.drain_timeout_s)
+            await asyncio.to_thread(worker.close, settings.drain_timeout_s)
+            if zenoh is not None:
+                await asyncio.to_thread(zenoh.close)
+            log.info("worker %s stopped", worker.worker_id)
+
+    app = FastAPI(title="PHiM detection server", version=package_version(), lifespan=lifespan)
+    app.add_exception_handler(ServiceError, _service_error_handler)  # type: ignore[arg-type]
+    _add_routes(app)
+    return app
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+
+
+def _services(request: Request) -> Services:
+    return request.app.state.services
+
+
+def wants_json(request: Request, default: bool) -> bool:
+    accept = request.headers.get("accept", "")
+    if any(t in accept for t in MSGPACK_TYPES):
+        return False
+    return "application/json" in accept or default
+
+
+def error_response(
+    e: ServiceError, as_json: bool, stream_id: str | None = None, seq: int | None = None
+) -> Response:
+    reply = ErrorReply.from_error(e, stream_id, seq)
+    headers = {}
+    if e.retry_after_s is not None:
+        headers["Retry-After"] = str(max(1, math.ceil(e.retry_after_s)))
+    status = HTTP_STATUS[e.code]
+    if as_json:
+        return JSONResponse(error_to_json(reply), status_code=status, headers=headers)
+    return Response(encode_error(reply), status_code=status, headers=headers, media_type=MSGPACK)
+
+
+async def _service_error_handler(request: Request, e: ServiceError) -> Response:
+    return error_response(e, wants_json(request, default=True), request.path_params.get("stream_id"))
+
+
+def _check_content_type(request: Request) -> None:
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype not in MSGPACK_TYPES:
+        raise ServiceError(
+            ErrorCode.BAD_REQUEST,
+            f"Content-Type: {ctype or 'missing'!r}; expected {MSGPACK!r}",
+            "Content-Type",
+        )
+
+
+async def read_body(request: Request, limit: int) -> bytes:
+    """The body, refusing (413) by Content-Length before reading, and while reading past `limit` bytes."""
+    declared = request.headers.get("content-length")
+    if declared is not None:
+        if not declared.isdigit():
+            raise ServiceError(ErrorCode.BAD_REQUEST, f"Content-Length: {declared!r}; expected an integer")
+        if int(declared) > limit:
+            raise ServiceError(
+                ErrorCode.TOO_LARGE, f"body: Content-Length {declared} bytes; the limit is {limit}", "body"
+            )
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise ServiceError(
+                ErrorCode.TOO_LARGE, f"body: more than {limit} bytes; the limit is {limit}", "body"
+            )
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+# ------------------------------------------------------------------------------------------------- routes
+
+
+async def post_sector(stream_id: str, request: Request) -> Response:
+    svc = _services(request)
+    as_json = wants_json(request, default=False)
+    seq: int | None = None
+    try:
+        _check_content_type(request)
+        msg = decode_sector(await read_body(request, svc.limits.max_body_bytes), svc.limits, stream_id)
+    except ServiceError as e:
+        svc.metrics.count("http", e.code.value)
+        return error_response(e, as_json, stream_id)
+    seq = msg.seq
+    try:
+        reply = await asyncio.wrap_future(svc.worker.submit(msg, transport="http"))
+    except ServiceError as e:
+        return error_response(e, as_json, stream_id, seq)
+    if as_json:
+        return JSONResponse(reply_to_json(reply))
+    return Response(encode_reply(reply), media_type=MSGPACK)
+
+
+async def delete_stream(stream_id: str, request: Request) -> dict[str, Any]:
+    _services(request).worker.end_stream(check_stream_id(stream_id))
+    return {"stream_id": stream_id, "ended": True}
+
+
+async def list_streams(request: Request) -> dict[str, Any]:
+    svc = _services(request)
+    streams = svc.worker.streams()
+    return {"streams": streams, "live": len(streams), "max_streams": svc.settings.max_streams}
+
+
+async def get_stream(stream_id: str, request: Request) -> dict[str, Any]:
+    return _services(request).worker.stream(check_stream_id(stream_id))
+
+
+async def get_model(request: Request) -> dict[str, Any]:
+    return _services(request).worker.model_info()
+
+
+async def live(request: Request) -> Response:
+    worker = _services(request).worker
+    if not worker.live:
+        return error_response(ServiceError(ErrorCode.INTERNAL, f"device loop: {worker.status}"), as_json=True)
+    return JSONResponse({"status": "live", "worker_id": worker.worker_id})
+
+
+async def ready(request: Request) -> Response:
+    worker = _services(request).worker
+    if not worker.ready:
+        return error_response(ServiceError(ErrorCode.NOT_READY, f"worker: {worker.status}"), as_json=True)
+    return JSONResponse({"status": "ready", "worker_id": worker.worker_id})
+
+
+async def metrics(request: Request) -> Response:
+    m = _services(request).metrics
+    return Response(m.exposition(), media_type=m.content_type)
+
+
+ROUTES: list[tuple[str, str, Callable[..., Any]]] = [
+    ("POST", "/v1/streams/{stream_id}/sectors", post_sector),
+    ("DELETE", "/v1/streams/{stream_id}", delete_stream),
+    ("GET", "/v1/streams", list_streams),
+    ("GET", "/v1/streams/{stream_id}", get_stream),
+    ("GET", "/v1/model", get_model),
+    ("GET", "/health/live", live),
+    ("GET", "/health/ready", ready),
+    ("GET", "/metrics", metrics),
+]
+
+
+def _add_routes(app: FastAPI) -> None:
+    for method, path, endpoint in ROUTES:
+        app.add_api_route(path, endpoint, methods=[method])

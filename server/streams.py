@@ -1,0 +1,143 @@
+"""The stream table: one entry per stream ID with its model state, sequence numbers and queued sectors.
+
+Not thread-safe by itself: the Worker holds its lock around every call. A stream starts on its first sector
+(or on a sector with the reset flag), ends on request, and is evicted after `idle_timeout_s` without sectors.
+Sequence numbers: a sector must come after every sector of its stream already admitted (queued or done),
+unless it carries the reset flag; a gap (seq > last + 1) is accepted and reported when the sector runs.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from model.stream import StreamState
+from server.protocol import DetectionsReply, ErrorCode, SectorMessage, ServiceError
+
+
+@dataclass
+class Pending:
+    """One admitted sector waiting for (or in) a forward pass."""
+
+    msg: SectorMessage
+    points: torch.Tensor  # (N, C) float32, CPU, validated
+    future: Future[DetectionsReply]
+    transport: str
+    entry: StreamEntry
+    submitted: float  # time.monotonic()
+    deadline: float  # time.monotonic() by which it must have started
+
+
+@dataclass
+class StreamEntry:
+    stream_id: str
+    created_unix: float
+    last_seen: float  # time.monotonic() of the last sector admitted or answered
+    state: StreamState | None = None  # None: fresh (the device loop builds the initial state)
+    last_seq: int | None = None  # seq of the last sector that ran
+    last_timestamp_ns: int | None = None  # its sensor time
+    last_admitted: int | None = None  # seq of the newest sector queued or run (stale checks)
+    pending: deque[Pending] = field(default_factory=deque)
+    running: bool = False  # a sector of this stream is in the current forward pass
+    sectors: int = 0  # sectors run
+    gaps: int = 0  # sectors missed in total
+
+    @property
+    def idle(self) -> bool:
+        return not self.pending and not self.running
+
+    def forget_failed(self) -> None:
+        """A queued or running sector failed: it no longer counts for the stale check."""
+        self.last_admitted = self.pending[-1].msg.seq if self.pending else self.last_seq
+
+    def summary(self, now: float) -> dict[str, Any]:
+        return {
+            "stream_id": self.stream_id,
+            "sectors": self.sectors,
+            "last_seq": self.last_seq,
+            "last_timestamp_ns": self.last_timestamp_ns,
+            "gaps": self.gaps,
+            "pending": len(self.pending) + int(self.running),
+            "buffered_sectors": self.state.buffered_sectors if self.state is not None else 0,
+            "created_unix": self.created_unix,
+            "idle_s": round(now - self.last_seen, 3),
+        }
+
+
+class StreamTable:
+    def __init__(
+        self, max_streams: int, idle_timeout_s: float, on_evict: Callable[[str], None] | None = None
+    ):
+        self.max_streams = max_streams
+        self.on_evict = on_evict
+        self.idle_timeout_s = idle_timeout_s
+        self.entries: dict[str, StreamEntry] = {}
+        self.evicted = 0
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def get(self, stream_id: str) -> StreamEntry | None:
+        return self.entries.get(stream_id)
+
+    def admit(self, msg: SectorMessage, now: float) -> StreamEntry:
+        """The stream's entry (created if new) after the stale check; raises ServiceError."""
+        entry = self.entries.get(msg.stream_id)
+        if entry is None:
+            entry = self._create(msg.stream_id, now)
+        elif not msg.reset and entry.last_admitted is not None and msg.seq <= entry.last_admitted:
+            raise ServiceError(
+                ErrorCode.STALE_SEQUENCE,
+                f"seq: {msg.seq} is stale or a duplicate for stream {msg.stream_id!r}; expected a seq "
+                f"greater than {entry.last_admitted} (or the reset flag to start the stream over)",
+                "seq",
+            )
+        entry.last_admitted = msg.seq
+        entry.last_seen = now
+        return entry
+
+    def _create(self, stream_id: str, now: float) -> StreamEntry:
+        if len(self.entries) >= self.max_streams:
+            self.evict_idle(now)
+        if len(self.entries) >= self.max_streams:
+            raise ServiceError(
+                ErrorCode.OVERLOADED,
+                f"stream_id: cannot start stream {stream_id!r}: {len(self.entries)} live streams, the limit "
+                f"(max_streams={self.max_streams}); end a stream or retry once idle streams are evicted "
+                f"(after {self.idle_timeout_s:g} s without sectors)",
+                "stream_id",
+                retry_after_s=self.idle_timeout_s,
+            )
+        entry = StreamEntry(stream_id=stream_id, created_unix=time.time(), last_seen=now)
+        self.entries[stream_id] = entry
+        return entry
+
+    def end(self, stream_id: str) -> StreamEntry:
+        entry = self.entries.pop(stream_id, None)
+        if entry is None:
+            raise self.unknown(stream_id)
+        return entry
+
+    def unknown(self, stream_id: str) -> ServiceError:
+        return ServiceError(
+            ErrorCode.UNKNOWN_STREAM,
+            f"stream_id: no live stream {stream_id!r} (never started, ended, or evicted after "
+            f"{self.idle_timeout_s:g} s idle)",
+            "stream_id",
+        )
+
+    def evict_idle(self, now: float) -> list[str]:
+        """Drop streams without queued or running sectors that were idle longer than the timeout."""
+        old = [sid for sid, e in self.entries.items() if e.idle and now - e.last_seen > self.idle_timeout_s]
+        for sid in old:
+            del self.entries[sid]
+            if self.on_evict is not None:
+                self.on_evict(sid)
+        self.evicted += len(old)
+        return old

@@ -1,0 +1,395 @@
+"""The worker: the model, the stream table and the scheduler, behind one thread-safe `submit`.
+
+One device-loop thread owns the model. Transports call `submit` from any thread; it validates the sector,
+admits it to its stream's queue (or fails the returned future at once) and never blocks. The loop forms a
+batch of at most one sector per stream (the oldest waiting first), bounded by `max_batch` and `max_wait_ms`,
+runs `StreamingDetector.step` once, writes the new states back and answers every sector with its own reply
+or its own error. A stream's next sector waits until its previous one has run, so each stream stays in order.
+numpy <-> torch conversion happens here: transports never see a tensor.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from concurrent.futures import Future, InvalidStateError
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from model.stream import SectorResult, StreamingDetector
+from model.voxelize import PointsError
+from server.metrics import OK, Metrics
+from server.protocol import DetectionsReply, ErrorCode, SectorMessage, ServiceError, Timings
+from server.streams import Pending, StreamEntry, StreamTable
+from server.warmup import POINT_FIELDS, model_info, warm_up
+
+log = logging.getLogger(__name__)
+
+Answer = tuple[Future[DetectionsReply], str, DetectionsReply | ServiceError]  # future, transport, outcome
+
+
+@dataclass(frozen=True)
+class WorkerConfig:
+    worker_id: str = "phim-worker"
+    max_batch: int = 8  # sectors (one per stream) per forward
+    max_wait_ms: float = 2.0  # how long the oldest sector may wait for a fuller batch
+    queue_size: int = 64  # sectors waiting, all streams together; beyond: OVERLOADED
+    deadline_ms: float = 2000.0  # a sector not started by then gets DEADLINE_EXCEEDED
+    idle_timeout_s: float = 10.0
+    max_streams: int = 256
+    warmup_sectors: int = 5
+    model_source: str = ""  # where the weights came from (for /v1/model and the log)
+
+
+class Worker:
+    def __init__(
+        self, det: StreamingDetector, cfg: WorkerConfig = WorkerConfig(), metrics: Metrics | None = None
+    ):
+        self.det = det
+        self.cfg = cfg
+        self.worker_id = cfg.worker_id
+        self.metrics = metrics or Metrics()
+        self.table = StreamTable(cfg.max_streams, cfg.idle_timeout_s, on_evict=self._evicted)
+        self._cond = threading.Condition()
+        self._depth = 0  # sectors queued (not running)
+        self._ready = False
+        self._closing = False
+        self._drain_until = math.inf
+        self._warmup_error: str | None = None
+        self._batch_s = 0.1  # moving average of one forward, for Retry-After
+        self._evict_tick_s = min(1.0, max(0.01, cfg.idle_timeout_s / 4))
+        self._next_evict = 0.0
+        self._thread: threading.Thread | None = None
+        self.metrics.bind(lambda: self._depth, lambda: len(self.table))
+        self.metrics.max_streams.set(cfg.max_streams)
+
+    # ------------------------------------------------------------------------------------ public surface
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=f"phim-device-{self.worker_id}", daemon=True)
+        self._thread.start()
+
+    @property
+    def ready(self) -> bool:
+        return self._ready
+
+    @property
+    def live(self) -> bool:
+        """The device loop is alive (or not started yet); False after a crash or a failed warm-up."""
+        return self._warmup_error is None and (
+            self._thread is None or self._thread.is_alive() or self._closing
+        )
+
+    @property
+    def status(self) -> str:
+        if self._warmup_error:
+            return f"warm-up failed: {self._warmup_error}"
+        if self._closing:
+            return "shutting down"
+        return "ready" if self._ready else "warming up"
+
+    @property
+    def queue_depth(self) -> int:
+        return self._depth
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Block until warmed up (True) or warm-up failed or the timeout passed (False)."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._ready or self._warmup_error is not None, timeout_s)
+            return self._ready
+
+    def submit(self, msg: SectorMessage, transport: str = "direct") -> Future[DetectionsReply]:
+        """Queue one sector; never blocks. The future gets the reply or a ServiceError, exactly once."""
+        fut: Future[DetectionsReply] = Future()
+        now = time.monotonic()
+        try:
+            points = self._to_tensor(msg)
+            with self._cond:
+                self._admit(msg, points, fut, transport, now)
+                self._cond.notify_all()
+        except ServiceError as e:
+            self._settle([(fut, transport, e)])
+        except Exception as e:  # a bug must still give this sector its one answer
+            log.exception("submit of %s seq %s failed", msg.stream_id, msg.seq)
+            self._settle([(fut, transport, ServiceError(ErrorCode.INTERNAL, f"{type(e).__name__}: {e}"))])
+        return fut
+
+    def end_stream(self, stream_id: str) -> None:
+        """Drop a stream's state; its queued sectors are answered UNKNOWN_STREAM. Raises if not live."""
+        with self._cond:
+            entry = self.table.end(stream_id)
+            failed = self._drop_pending(entry, ErrorCode.UNKNOWN_STREAM, f"stream {stream_id!r} was ended")
+        self._settle(failed)
+
+    def streams(self) -> list[dict[str, Any]]:
+        now = time.monotonic()
+        with self._cond:
+            return [e.summary(now) for e in self.table.entries.values()]
+
+    def stream(self, stream_id: str) -> dict[str, Any]:
+        with self._cond:
+            entry = self.table.get(stream_id)
+            if entry is None:
+                raise self.table.unknown(stream_id)
+            return entry.summary(time.monotonic())
+
+    def model_info(self) -> dict[str, Any]:
+        return model_info(self.det, self.cfg.model_source, self.worker_id)
+
+    def close(self, drain_timeout_s: float = 10.0, forward_grace_s: float = 30.0) -> None:
+        """Stop taking sectors and answer every queued one: run while the drain timeout lasts, NOT_READY after
+        it. Then wait up to `forward_grace_s` for the forward in progress (its sectors get their results)."""
+        with self._cond:
+            if not self._closing:
+                self._closing = True
+                self._ready = False
+                self.metrics.ready.set(0)
+                self._drain_until = time.monotonic() + drain_timeout_s
+                self._cond.notify_all()
+            self._cond.wait_for(lambda: self._depth == 0, drain_timeout_s)
+            failed = self._expire(math.inf)  # what the loop did not get to (stuck, slow or never started)
+        self._settle(failed)
+        if self._thread is not None:
+            self._thread.join(forward_grace_s)
+            if self._thread.is_alive():
+                log.warning(
+                    "device loop still in a forward %.1f s after the drain; leaving it", forward_grace_s
+                )
+
+    # ------------------------------------------------------------------------------------------ admission
+
+    def _to_tensor(self, msg: SectorMessage) -> torch.Tensor:
+        """Check the sector against the model and convert it; a bad sector never enters a batch."""
+        cfg = self.det.cfg
+        if not 0 <= msg.sector_index < cfg.sectors_per_turn:
+            raise ServiceError(
+                ErrorCode.INVALID_FIELD,
+                f"sector_index: {msg.sector_index}; expected 0..{cfg.sectors_per_turn - 1} "
+                f"(the model splits a turn into {cfg.sectors_per_turn} sectors)",
+                "sector_index",
+            )
+        used = min(len(msg.fields), cfg.vfe.point_features)
+        if tuple(msg.fields[:used]) != POINT_FIELDS[:used]:
+            expected = list(POINT_FIELDS[: cfg.vfe.point_features])
+            raise ServiceError(
+                ErrorCode.INVALID_FIELD,
+                f"fields: {list(msg.fields)}; the model reads the columns {expected} (in this order)",
+                "fields",
+            )
+        points = torch.from_numpy(
+            np.array(msg.points, dtype=np.float32, copy=True)
+        )  # (N, C), owns its memory
+        try:
+            self.det.validate(points)
+        except PointsError as e:
+            raise ServiceError(ErrorCode.INVALID_FIELD, str(e), "points") from None
+        return points
+
+    def _admit(
+        self,
+        msg: SectorMessage,
+        points: torch.Tensor,
+        fut: Future[DetectionsReply],
+        transport: str,
+        now: float,
+    ) -> None:
+        """Under the lock: check readiness, queue room and sequence, then queue the sector."""
+        if self._closing or not self._ready:
+            raise ServiceError(
+                ErrorCode.NOT_READY, f"worker {self.worker_id}: {self.status}; not taking sectors"
+            )
+        if self._depth >= self.cfg.queue_size:
+            retry = max(0.01, math.ceil(self._depth / self.cfg.max_batch) * self._batch_s)
+            raise ServiceError(
+                ErrorCode.OVERLOADED,
+                f"queue full: {self._depth} sectors waiting (queue_size={self.cfg.queue_size}); "
+                f"retry after {retry:.2f} s",
+                retry_after_s=retry,
+            )
+        entry = self.table.admit(msg, now)
+        entry.pending.append(
+            Pending(msg, points, fut, transport, entry, now, now + self.cfg.deadline_ms / 1e3)
+        )
+        self._depth += 1
+
+    def _drop_pending(self, entry: StreamEntry, code: ErrorCode, why: str) -> list[Answer]:
+        failed: list[Answer] = [
+            (p.future, p.transport, ServiceError(code, f"{why} before seq {p.msg.seq} ran"))
+            for p in entry.pending
+        ]
+        self._depth -= len(entry.pending)
+        entry.pending.clear()
+        self._cond.notify_all()
+        entry.forget_failed()
+        return failed
+
+    def _evicted(self, stream_id: str) -> None:
+        self.metrics.evictions.inc()
+        log.info("stream %s evicted after %.1f s idle", stream_id, self.cfg.idle_timeout_s)
+
+    # -------------------------------------------------------------------------------------- device loop
+
+    def _run(self) -> None:
+        try:
+            self._batch_s = warm_up(self.det, self.cfg.warmup_sectors)
+        except Exception as e:
+            log.exception("warm-up failed; the worker will never be ready")
+            with self._cond:
+                self._warmup_error = f"{type(e).__name__}: {e}"
+                self._cond.notify_all()
+            return
+        with self._cond:
+            self._ready = not self._closing
+            self.metrics.ready.set(int(self._ready))
+            self._cond.notify_all()
+        log.info("worker %s ready (one forward about %.1f ms)", self.worker_id, self._batch_s * 1e3)
+        while (batch := self._next_batch()) is not None:
+            self._run_batch(batch)
+
+    def _next_batch(self) -> list[Pending] | None:
+        """Block until a batch is due; None when closing and nothing is left."""
+        while True:
+            with self._cond:
+                now = time.monotonic()
+                failed = self._expire(now)
+                if now >= self._next_evict:
+                    self.table.evict_idle(now)
+                    self._next_evict = now + self._evict_tick_s
+                if not failed:
+                    due = self._form_batch(now)
+                    if due is None or isinstance(due, list):
+                        return due
+                    self._cond.wait(due)
+                    continue
+            self._settle(failed)
+
+    def _form_batch(self, now: float) -> list[Pending] | float | None:
+        """A batch, or seconds to wait for one, or None (closing and drained)."""
+        heads = [e for e in self.table.entries.values() if e.pending]
+        if not heads:
+            return None if self._closing else max(0.0, self._next_evict - now)
+        heads.sort(key=lambda e: e.pending[0].submitted)
+        waited = now - heads[0].pending[0].submitted
+        full = len(heads) >= min(self.cfg.max_batch, len(self.table))
+        if not (full or self._closing or waited >= self.cfg.max_wait_ms / 1e3):
+            return self.cfg.max_wait_ms / 1e3 - waited
+        batch = [e.pending.popleft() for e in heads[: self.cfg.max_batch]]
+        for p in batch:
+            p.entry.running = True
+        self._depth -= len(batch)
+        self._cond.notify_all()  # close() waits for the queue to empty
+        return batch
+
+    def _expire(self, now: float) -> list[Answer]:
+        """Under the lock: take out sectors past their deadline (or everything after the drain timeout)."""
+        failed: list[Answer] = []
+        draining_over = now >= self._drain_until
+        for entry in self.table.entries.values():
+            before = len(failed)
+            while entry.pending and (draining_over or entry.pending[0].deadline < now):
+                p = entry.pending.popleft()
+                self._depth -= 1
+                failed.append((p.future, p.transport, self._expired_error(p, now, draining_over)))
+            if len(failed) > before:
+                entry.forget_failed()
+        if failed:
+            self._cond.notify_all()
+        return failed
+
+    def _expired_error(self, p: Pending, now: float, shutting_down: bool) -> ServiceError:
+        if shutting_down:
+            return ServiceError(
+                ErrorCode.NOT_READY, f"worker {self.worker_id} shut down before this sector ran"
+            )
+        return ServiceError(
+            ErrorCode.DEADLINE_EXCEEDED,
+            f"deadline: seq {p.msg.seq} waited {(now - p.submitted) * 1e3:.0f} ms in the queue; "
+            f"the deadline is {self.cfg.deadline_ms:g} ms (deadline_ms)",
+        )
+
+    def _run_batch(self, batch: list[Pending]) -> None:
+        with self._cond:
+            gaps = [self._gap(p) for p in batch]
+            prior = [None if p.msg.reset else p.entry.state for p in batch]  # None: start fresh
+        t0 = time.monotonic()
+        new_states: list[Any] | None = None
+        try:  # anything failing here fails this batch only: the loop and every stream's state go on
+            states = [s if s is not None else self.det.init_state() for s in prior]
+            results, new_states = self.det.step([p.points for p in batch], states)
+            model_s = time.monotonic() - t0
+            outcomes: list[Answer] = [
+                (p.future, p.transport, self._reply(p, r, g, t0, model_s))
+                for p, r, g in zip(batch, results, gaps, strict=True)
+            ]
+        except Exception as e:
+            log.exception("forward of a batch of %d failed", len(batch))
+            model_s, new_states = time.monotonic() - t0, None
+            self.metrics.batch_failures.inc()
+            why = f"model failed on this batch of {len(batch)}: {type(e).__name__}: {e}"
+            outcomes = [(p.future, p.transport, ServiceError(ErrorCode.INTERNAL, why)) for p in batch]
+        self._batch_s = 0.8 * self._batch_s + 0.2 * model_s
+        self.metrics.batch_size.observe(len(batch))
+        with self._cond:
+            for i, p in enumerate(batch):
+                self._finish(p, None if new_states is None else new_states[i], gaps[i])
+        self._settle(outcomes)
+
+    @staticmethod
+    def _gap(p: Pending) -> int:
+        """Sectors missed since the stream's last sector that ran (0 for a new or reset stream)."""
+        last = p.entry.last_seq
+        return 0 if p.msg.reset or last is None else max(0, p.msg.seq - last - 1)
+
+    def _finish(self, p: Pending, new_state: Any, gap: int) -> None:
+        """Under the lock: write the new state back (unless the batch failed or the stream ended)."""
+        e = p.entry
+        e.running = False
+        e.last_seen = time.monotonic()
+        if new_state is None:
+            e.forget_failed()
+        elif self.table.get(e.stream_id) is e:
+            e.state, e.last_seq, e.last_timestamp_ns = new_state, p.msg.seq, p.msg.timestamp_ns
+            e.sectors += 1
+            e.gaps += gap
+
+    def _reply(self, p: Pending, r: SectorResult, gap: int, t0: float, model_s: float) -> DetectionsReply:
+        d = r.detections
+        labels = d.labels.cpu().numpy().astype(np.int32)  # (K,)
+        names = self.det.cfg.head.class_names
+        return DetectionsReply(
+            stream_id=p.msg.stream_id,
+            seq=p.msg.seq,
+            boxes=d.boxes.cpu().numpy().astype(np.float32, copy=False),  # (K, 7)
+            scores=d.scores.cpu().numpy().astype(np.float32, copy=False),  # (K,)
+            labels=labels,
+            class_names=tuple(names[i] for i in labels),
+            context_sectors=r.context_sectors,
+            gap=gap,
+            timings=Timings(
+                queue_ms=(t0 - p.submitted) * 1e3,
+                model_ms=model_s * 1e3,
+                total_ms=(time.monotonic() - p.submitted) * 1e3,
+            ),
+        )
+
+    def _settle(self, answers: list[Answer]) -> None:
+        """Outside the lock: give each sector its one answer and count it."""
+        for fut, transport, out in answers:
+            try:
+                if isinstance(out, ServiceError):
+                    fut.set_exception(out)
+                else:
+                    fut.set_result(out)
+            except InvalidStateError:  # the caller cancelled (client went away); the sector still counted
+                pass
+            self.metrics.count(transport, OK if isinstance(out, DetectionsReply) else out.code.value)
+            if isinstance(out, DetectionsReply):
+                t = out.timings
+                self.metrics.queue_latency.observe(t.queue_ms / 1e3)
+                self.metrics.model_latency.observe(t.model_ms / 1e3)
+                self.metrics.total_latency.observe(t.total_ms / 1e3)

@@ -1,0 +1,314 @@
+"""The zenoh transport: sectors in over a queryable (request/reply) or a subscriber (pub/sub), answers out.
+
+It knows the wire protocol and a `submit` callable (the worker's), nothing else: it never sees a tensor.
+
+Threads, so that no zenoh callback ever blocks and no zenoh call is made inside one:
+  - zenoh pushes queries and samples into bounded FIFO channels (no Python callback at all);
+  - two receiver threads (one per channel) `recv`, decode and `submit`; `submit` never blocks;
+  - the future's done-callback (it runs on the worker's device thread) only puts the outcome in the outbox;
+  - one replier thread owns every outgoing zenoh call: `reply`/`reply_err` + `drop` for queries, `put` for
+    pub/sub results. Every sector gets exactly one answer, also on decode errors and on `close`.
+
+Key expressions (prefix "phim/v1" by default): see `KeySpace` and docs/protocol.md ("Zenoh").
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from functools import partial
+from typing import TypeVar
+
+import zenoh
+
+from server.protocol import (
+    STREAM_ID_RE,
+    DetectionsReply,
+    ErrorCode,
+    ErrorReply,
+    Limits,
+    SectorMessage,
+    ServiceError,
+    decode_sector,
+    encode_error,
+    encode_reply,
+)
+
+log = logging.getLogger(__name__)
+
+MSGPACK = zenoh.Encoding("application/msgpack")
+CHANNEL_CAPACITY = 256  # queries / samples zenoh may hold for a receiver thread before it pushes back
+JOIN_TIMEOUT_S = 10.0
+
+Submit = Callable[[SectorMessage], "Future[DetectionsReply]"]
+Outcome = DetectionsReply | ErrorReply
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    mode: str = "peer"  # "peer" | "client" | "router"
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    config_file: str | None = None  # a zenoh JSON5 config file; the fields above override it
+    key_prefix: str = "phim/v1"
+
+
+def build_config(cfg: ZenohConfig) -> zenoh.Config:
+    """A zenoh.Config: the config file (if any), then mode, endpoints and multicast scouting from `cfg`."""
+    if cfg.mode not in ("peer", "client", "router"):
+        raise ValueError(f"zenoh mode: {cfg.mode!r}; expected 'peer', 'client' or 'router'")
+    conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(cfg.mode))
+    conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    return conf
+
+
+def open_session(cfg: ZenohConfig) -> zenoh.Session:
+    """Open a zenoh session built from `cfg` (servers, clients and tests share this) and log how."""
+    conf = build_config(cfg)
+    session = zenoh.open(conf)
+    log.info(
+        "zenoh session %s: mode=%s listen=%s connect=%s multicast_scouting=%s config_file=%s",
+        session.zid(),
+        json.loads(conf.get_json("mode")),
+        json.loads(conf.get_json("listen/endpoints")),
+        json.loads(conf.get_json("connect/endpoints")),
+        json.loads(conf.get_json("scouting/multicast/enabled")),
+        cfg.config_file,
+    )
+    return session
+
+
+@dataclass(frozen=True)
+class KeySpace:
+    """The key expressions under one prefix."""
+
+    prefix: str = "phim/v1"
+
+    @property
+    def sector_queryable(self) -> str:  # request/reply: get with a sector as payload
+        return f"{self.prefix}/streams/*/sector"
+
+    @property
+    def sector_subscriber(self) -> str:  # pub/sub: put a sector
+        return f"{self.prefix}/streams/*/sectors"
+
+    def sector(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/sector"
+
+    def sectors(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/sectors"
+
+    def detections(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/detections"
+
+    def errors(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/errors"
+
+    def worker(self, worker_id: str) -> str:
+        return f"{self.prefix}/workers/{worker_id}"
+
+    def stream_id_of(self, key: str) -> str:
+        """The stream-ID chunk of `{prefix}/streams/{id}/...` ('' if the key has another shape)."""
+        head = f"{self.prefix}/streams/"
+        return key[len(head) :].split("/", 1)[0] if key.startswith(head) else ""
+
+
+@dataclass(eq=False)
+class _Job:
+    """One sector waiting for its one answer: a query to reply to, or (query None) a pub/sub sector."""
+
+    key_id: str  # the stream-ID chunk of the key the sector came on
+    query: zenoh.Query | None
+    stream_id: str | None = None  # validated (from the decoded sector, or the key if it is a valid ID)
+    seq: int | None = None
+
+    def error(self, e: ServiceError) -> ErrorReply:
+        return ErrorReply.from_error(e, self.stream_id, self.seq)
+
+
+class ZenohTransport:
+    """Queryable `{prefix}/streams/*/sector`, subscriber `{prefix}/streams/*/sectors`, liveliness token
+    `{prefix}/workers/{worker_id}`; results on `.../{id}/detections`, errors on `.../{id}/errors`."""
+
+    def __init__(self, submit: Submit, cfg: ZenohConfig, worker_id: str, limits: Limits):
+        self.submit = submit
+        self.cfg = cfg
+        self.worker_id = worker_id
+        self.limits = limits
+        self.keys = KeySpace(cfg.key_prefix)
+        self._session: zenoh.Session | None = None
+        self._queryable: zenoh.Queryable | None = None
+        self._subscriber: zenoh.Subscriber | None = None
+        self._token: zenoh.LivelinessToken | None = None
+        self._outbox: queue.SimpleQueue[tuple[_Job, Outcome] | None] = queue.SimpleQueue()
+        self._cond = threading.Condition()
+        self._inflight: set[_Job] = set()  # submitted, outcome not yet in the outbox
+        self._receivers: list[threading.Thread] = []
+        self._replier: threading.Thread | None = None
+        self._closing = False
+
+    # ------------------------------------------------------------------------------------ public surface
+
+    def start(self) -> None:
+        """Open the session, declare queryable and subscriber, then the liveliness token (ready to serve)."""
+        if self._session is not None or self._closing:
+            raise RuntimeError("a ZenohTransport starts once")
+        session = open_session(self.cfg)
+        self._session = session
+        try:
+            self._replier = self._thread(self._reply_loop, "replier")
+            self._queryable = session.declare_queryable(
+                self.keys.sector_queryable, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
+            )
+            self._subscriber = session.declare_subscriber(
+                self.keys.sector_subscriber, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
+            )
+            self._receivers = [
+                self._thread(self._receive_queries, "queries", self._queryable.handler),
+                self._thread(self._receive_samples, "samples", self._subscriber.handler),
+            ]
+            self._token = session.liveliness().declare_token(self.keys.worker(self.worker_id))
+        except BaseException:
+            self.close(drain_timeout_s=0.0)
+            raise
+        log.info(
+            "zenoh transport for worker %s: queryable %s, subscriber %s, liveliness %s",
+            self.worker_id,
+            self.keys.sector_queryable,
+            self.keys.sector_subscriber,
+            self.keys.worker(self.worker_id),
+        )
+
+    def close(self, drain_timeout_s: float = 10.0) -> None:
+        """Withdraw the token, stop taking sectors, send every answer still due (sectors not settled within
+        `drain_timeout_s` get NOT_READY), then close the session. Idempotent."""
+        with self._cond:
+            session = self._session
+            if session is None or self._closing:
+                return
+            self._closing = True
+        for entity in (self._token, self._queryable, self._subscriber):
+            if entity is not None:
+                entity.undeclare()  # closes the channels: the receivers drain them and stop
+        for t in self._receivers:
+            t.join(JOIN_TIMEOUT_S)
+        with self._cond:
+            self._cond.wait_for(lambda: not self._inflight, drain_timeout_s)
+            late, self._inflight = list(self._inflight), set()
+        if late:
+            log.warning("zenoh closing: %d sectors unanswered after %.1f s", len(late), drain_timeout_s)
+        for job in late:
+            why = ServiceError(ErrorCode.NOT_READY, f"worker {self.worker_id}: zenoh transport closed")
+            self._outbox.put((job, job.error(why)))
+        self._outbox.put(None)
+        if self._replier is not None:
+            self._replier.join(JOIN_TIMEOUT_S)
+        session.close()
+        self._session = None
+        log.info("zenoh transport for worker %s closed", self.worker_id)
+
+    # ------------------------------------------------------------------------------------------- intake
+
+    def _thread(self, target: Callable[..., None], name: str, *args: object) -> threading.Thread:
+        t = threading.Thread(target=target, args=args, name=f"zenoh-{name}-{self.worker_id}", daemon=True)
+        t.start()
+        return t
+
+    def _receive_queries(self, channel: zenoh.handlers.Handler[zenoh.Query]) -> None:
+        while (query := _recv(channel)) is not None:
+            self._accept(str(query.key_expr), query.payload, query)
+
+    def _receive_samples(self, channel: zenoh.handlers.Handler[zenoh.Sample]) -> None:
+        while (sample := _recv(channel)) is not None:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._accept(str(sample.key_expr), sample.payload, None)
+
+    def _accept(self, key: str, payload: zenoh.ZBytes | None, query: zenoh.Query | None) -> None:
+        """Decode and submit one sector; whatever happens, its answer ends up in the outbox once."""
+        job = _Job(self.keys.stream_id_of(key), query)
+        if STREAM_ID_RE.fullmatch(job.key_id) and len(job.key_id) <= self.limits.max_string_len:
+            job.stream_id = job.key_id
+        try:
+            data = payload.to_bytes() if payload is not None else b""
+            msg = decode_sector(data, self.limits, stream_id=job.key_id)
+        except ServiceError as e:
+            log.debug("zenoh: rejected a sector on %s: %s", key, e.message)
+            self._outbox.put((job, job.error(e)))
+            return
+        except Exception as e:  # a bug, not the sender's fault; the sector is answered all the same
+            log.exception("zenoh: decoding a sector on %s failed", key)
+            self._outbox.put((job, job.error(ServiceError(ErrorCode.INTERNAL, f"{type(e).__name__}: {e}"))))
+            return
+        job.stream_id, job.seq = msg.stream_id, msg.seq
+        with self._cond:
+            self._inflight.add(job)
+        try:
+            future = self.submit(msg)
+        except Exception as e:  # submit should fail its future instead; answer anyway
+            log.exception("submit raised for %s seq %d", msg.stream_id, msg.seq)
+            future = Future()
+            future.set_exception(e)
+        future.add_done_callback(partial(self._settled, job))
+
+    def _settled(self, job: _Job, future: Future[DetectionsReply]) -> None:
+        """Done-callback (worker thread): hand the outcome to the replier; never touches zenoh."""
+        with self._cond:
+            if job not in self._inflight:
+                return  # close() already answered it
+            self._inflight.discard(job)
+            self._cond.notify_all()
+        self._outbox.put((job, _outcome(job, future)))
+
+    # ------------------------------------------------------------------------------------------- output
+
+    def _reply_loop(self) -> None:
+        while (item := self._outbox.get()) is not None:
+            job, outcome = item
+            try:
+                self._deliver(job, outcome)
+            except Exception:
+                log.exception("zenoh: could not deliver the answer for stream %s seq %s", job.key_id, job.seq)
+
+    def _deliver(self, job: _Job, outcome: Outcome) -> None:
+        ok = isinstance(outcome, DetectionsReply)
+        payload = encode_reply(outcome) if ok else encode_error(outcome)
+        if job.query is not None:
+            try:  # the reply's QoS (congestion control, priority) follows the query's
+                if ok:
+                    job.query.reply(job.query.key_expr, payload, encoding=MSGPACK)
+                else:
+                    job.query.reply_err(payload, encoding=MSGPACK)
+            finally:
+                job.query.drop()  # finalize: the querier's get completes now
+            return
+        assert self._session is not None  # the session outlives the replier thread
+        key = self.keys.detections(job.key_id) if ok else self.keys.errors(job.key_id)
+        self._session.put(key, payload, encoding=MSGPACK, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
+def _recv(channel: zenoh.handlers.Handler[T]) -> T | None:
+    """The next item, or None once the channel is closed (its entity undeclared) and empty."""
+    try:
+        return channel.recv()
+    except zenoh.ZError:
+        return None
+
+
+def _outcome(job: _Job, future: Future[DetectionsReply]) -> Outcome:
+    try:
+        return future.result(timeout=0)
+    except ServiceError as e:
+        return job.error(e)
+    except Exception as e:
+        log.error("zenoh: sector %s seq %s failed: %r", job.key_id, job.seq, e)
+        return job.error(ServiceError(ErrorCode.INTERNAL, f"{type(e).__name__}: {e}"))

@@ -1,0 +1,152 @@
+"""Shared pieces of the server tests: the real default model, KITTI sectors, a gate on the forward pass, and
+a real uvicorn server on a loopback port in a thread."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+import uvicorn
+from conftest import kitti_scan
+
+from model.config import tiny
+from model.detector import PHiM
+from model.sectors import split_turn
+from model.stream import StreamingDetector
+from server.app import create_app
+from server.default_model import DEFAULT_SEED, load_default_model
+from server.protocol import SectorMessage
+from server.settings import Settings
+
+FIELDS = ("x", "y", "z", "intensity")
+
+
+def default_detector() -> StreamingDetector:
+    """The model `phim serve` runs by default (tiny config, fixed-seed weights)."""
+    return StreamingDetector(load_default_model("cpu")[0])
+
+
+def comparable_detector() -> StreamingDetector:
+    """The default model's config and weights, but with clear heatmap peaks and a score threshold of 0.4:
+    a few to a few dozen boxes per KITTI sector instead of 200 near-ties, so the float noise between a
+    batched and a single forward never changes which boxes pass a top-k cut (as in test_streaming)."""
+    cfg = tiny()
+    cfg = dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, score_threshold=0.4))
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(DEFAULT_SEED)
+        model = PHiM(cfg)
+    with torch.no_grad():
+        model.head.heatmap[-1].weight.mul_(40.0)
+    return StreamingDetector(model.eval())
+
+
+def kitti_sectors(index: int = 0, every: int = 1) -> list[np.ndarray]:
+    """A real KITTI scan split into the tiny config's 4 azimuth sectors, (N_k, 4) float32 each; `every` > 1
+    keeps every n-th point (faster forwards)."""
+    return [s[::every].contiguous().numpy() for s in split_turn(kitti_scan(index), 4)]
+
+
+def sector_msg(
+    stream_id: str, seq: int, points: np.ndarray, index: int | None = None, **kw: Any
+) -> SectorMessage:
+    return SectorMessage(
+        stream_id, seq, seq % 4 if index is None else index, 1000 * seq, points, FIELDS, **kw
+    )
+
+
+def run_direct(det: StreamingDetector, sectors: list[np.ndarray]) -> list[Any]:
+    """The reference: the same sectors through StreamingDetector.step, one stream, no server."""
+    state, out = det.init_state(), []
+    for s in sectors:
+        (r,), (state,) = det.step([torch.from_numpy(s.copy())], [state])
+        out.append(r.detections)
+    return out
+
+
+def assert_same_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, ref: Any) -> None:
+    """A reply's arrays equal a reference Detections (same count, same boxes up to float noise)."""
+    assert boxes.shape == (len(ref), 7), (boxes.shape, len(ref))
+    np.testing.assert_allclose(boxes, ref.boxes.numpy(), atol=1e-4, rtol=0)
+    np.testing.assert_allclose(scores, ref.scores.numpy(), atol=1e-5, rtol=0)
+    assert labels.tolist() == ref.labels.tolist()
+
+
+@dataclass
+class StepGate:
+    """Fault injection on the forward pass: hold `det.step` closed until `release()`, or make it raise."""
+
+    det: StreamingDetector
+    real: Callable[..., Any]
+    opened: threading.Event = field(default_factory=threading.Event)
+    entered: threading.Event = field(default_factory=threading.Event)
+    batches: list[int] = field(default_factory=list)  # sectors per forward, in call order
+    fail_at: set[int] = field(default_factory=set)  # forwards (0-based call numbers) that raise
+
+    @staticmethod
+    def install(det: StreamingDetector, monkeypatch: pytest.MonkeyPatch, closed: bool = True) -> StepGate:
+        gate = StepGate(det, det.step)
+        if not closed:
+            gate.opened.set()
+        monkeypatch.setattr(det, "step", gate.step)
+        return gate
+
+    def step(self, points: list[torch.Tensor], states: list[Any]) -> Any:
+        call = len(self.batches)
+        self.batches.append(len(points))
+        self.entered.set()
+        assert self.opened.wait(60), "gate never opened"
+        if call in self.fail_at:
+            raise RuntimeError("injected fault: device lost")
+        return self.real(points, states)
+
+    def release(self) -> None:
+        self.opened.set()
+
+
+@dataclass
+class RunningServer:
+    url: str
+    server: uvicorn.Server
+    thread: threading.Thread
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(60)
+        assert not self.thread.is_alive(), "server did not stop"
+
+
+def make_settings(**overrides: Any) -> Settings:
+    base: dict[str, Any] = dict(port=0, zenoh_enabled=False, warmup_sectors=1, worker_id="test-worker")
+    return Settings(**{**base, **overrides})
+
+
+@contextlib.contextmanager
+def serve(det: StreamingDetector, wait_ready: bool = True, **overrides: Any) -> Iterator[RunningServer]:
+    """A real uvicorn server (thread, 127.0.0.1, free port) around create_app with the given detector."""
+    settings = make_settings(**overrides)
+    app = create_app(settings, detector=det)
+    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", ws="none", lifespan="on")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
+    thread.start()
+    try:
+        for _ in range(600):
+            if server.started or not thread.is_alive():
+                break
+            threading.Event().wait(0.05)
+        assert server.started, "uvicorn did not start"
+        port = server.servers[0].sockets[0].getsockname()[1]
+        running = RunningServer(f"http://127.0.0.1:{port}", server, thread)
+        if wait_ready:
+            assert app.state.services.worker.wait_ready(60), app.state.services.worker.status
+        yield running
+    finally:
+        server.should_exit = True
+        thread.join(60)

@@ -1,0 +1,297 @@
+"""The worker (stream table + scheduler + device loop) with the real default model, no transport."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Iterator
+from concurrent.futures import Future
+from typing import Any
+
+import numpy as np
+import pytest
+from server_helpers import (
+    StepGate,
+    assert_same_boxes,
+    comparable_detector,
+    kitti_sectors,
+    run_direct,
+    sector_msg,
+)
+
+from model.stream import StreamingDetector
+from server.protocol import DetectionsReply, ErrorCode, ServiceError
+from server.worker import Worker, WorkerConfig
+
+
+@pytest.fixture(scope="module")
+def det() -> StreamingDetector:
+    return comparable_detector()
+
+
+@pytest.fixture(scope="module")
+def scan_a() -> list[np.ndarray]:
+    return kitti_sectors(0, every=4)
+
+
+@pytest.fixture(scope="module")
+def scan_b() -> list[np.ndarray]:
+    return kitti_sectors(1, every=4)
+
+
+@pytest.fixture(scope="module")
+def ref_a(det: StreamingDetector, scan_a: list[np.ndarray]) -> list[Any]:
+    return run_direct(det, scan_a)
+
+
+@pytest.fixture(scope="module")
+def ref_b(det: StreamingDetector, scan_b: list[np.ndarray]) -> list[Any]:
+    return run_direct(det, scan_b)
+
+
+@contextlib.contextmanager
+def running(det: StreamingDetector, **kw: Any) -> Iterator[Worker]:
+    w = Worker(det, WorkerConfig(warmup_sectors=1, **kw))
+    w.start()
+    assert w.wait_ready(60), w.status
+    try:
+        yield w
+    finally:
+        w.close(10)
+
+
+def ok(fut: Future) -> DetectionsReply:
+    return fut.result(60)
+
+
+def err(fut: Future) -> ServiceError:
+    e = fut.exception(60)
+    assert isinstance(e, ServiceError), e
+    return e
+
+
+def answered(w: Worker) -> dict[str, float]:
+    return {
+        s.labels["outcome"]: s.value
+        for m in w.metrics.requests.collect()
+        for s in m.samples
+        if s.name.endswith("_total")
+    }
+
+
+def check(reply: DetectionsReply, ref: Any) -> None:
+    assert_same_boxes(reply.boxes, reply.scores, reply.labels, ref)
+
+
+def test_stream_equals_direct_model(det, scan_a, ref_a):
+    with running(det) as w:
+        replies = [ok(w.submit(sector_msg("car", i, s))) for i, s in enumerate(scan_a)]
+    assert len(ref_a[-1]) > 0  # the reference has boxes, so the comparison means something
+    for i, (r, ref) in enumerate(zip(replies, ref_a, strict=True)):
+        check(r, ref)
+        assert (r.stream_id, r.seq, r.context_sectors, r.gap) == ("car", i, i + 1, 0)
+        assert r.class_names == tuple(det.cfg.head.class_names[k] for k in r.labels)
+        assert r.timings.total_ms >= r.timings.model_ms > 0
+
+
+def test_two_streams_batch_together_and_never_mix(det, monkeypatch, scan_a, scan_b, ref_a, ref_b):
+    with running(det) as w:
+        gate = StepGate.install(det, monkeypatch)
+        blocker = w.submit(sector_msg("z", 0, scan_a[0]))
+        assert gate.entered.wait(30)
+        futs = [
+            (w.submit(sector_msg("a", i, scan_a[i])), w.submit(sector_msg("b", i, scan_b[i])))
+            for i in range(4)
+        ]
+        gate.release()
+        ok(blocker)
+        for i, (fa, fb) in enumerate(futs):
+            check(ok(fa), ref_a[i])
+            check(ok(fb), ref_b[i])
+    assert gate.batches == [1, 2, 2, 2, 2]  # one sector per stream per forward, streams in order
+
+
+def test_stale_and_duplicate_seq_leave_the_stream_unharmed(det, scan_a, ref_a):
+    with running(det) as w:
+        check(ok(w.submit(sector_msg("car", 10, scan_a[0], index=0))), ref_a[0])
+        check(ok(w.submit(sector_msg("car", 11, scan_a[1], index=1))), ref_a[1])
+        for seq in (11, 5):
+            e = err(w.submit(sector_msg("car", seq, scan_a[3], index=3)))
+            assert e.code == ErrorCode.STALE_SEQUENCE and e.field == "seq" and "greater than 11" in e.message
+        r2 = ok(w.submit(sector_msg("car", 12, scan_a[2], index=2)))
+        check(r2, ref_a[2])
+        assert r2.gap == 0 and r2.context_sectors == 3
+        assert w.stream("car")["sectors"] == 3
+
+
+def test_gap_is_reported_and_reset_starts_fresh(det, scan_a, ref_a):
+    with running(det) as w:
+        ok(w.submit(sector_msg("car", 0, scan_a[0])))
+        r = ok(w.submit(sector_msg("car", 3, scan_a[1], index=1)))
+        assert r.gap == 2 and w.stream("car")["gaps"] == 2
+        fresh = ok(w.submit(sector_msg("car", 0, scan_a[0], reset=True)))  # seq may restart with reset
+        assert fresh.gap == 0 and fresh.context_sectors == 1
+        check(fresh, ref_a[0])
+
+
+def test_overload_rejects_at_once_and_every_request_is_answered_once(det, monkeypatch, scan_a, ref_a):
+    with running(det, queue_size=3) as w:
+        gate = StepGate.install(det, monkeypatch)
+        futs = [w.submit(sector_msg("s0", 0, scan_a[0]))]
+        assert gate.entered.wait(30)  # s0 is in the forward, the queue is empty
+        futs += [w.submit(sector_msg(f"s{i}", 0, scan_a[0])) for i in range(1, 9)]
+        rejected = [f for f in futs if f.done()]
+        assert len(rejected) == 5 and w.queue_depth == 3
+        for f in rejected:
+            e = err(f)
+            assert e.code == ErrorCode.OVERLOADED and e.retry_after_s is not None and e.retry_after_s > 0
+            assert "queue_size=3" in e.message
+        gate.release()
+        for f in futs:
+            if f not in rejected:
+                check(ok(f), ref_a[0])
+        check(ok(w.submit(sector_msg("s1", 1, scan_a[1]))), ref_a[1])  # recovered; s1's state intact
+        counts = answered(w)
+    assert counts == {"ok": 5.0, "overloaded": 5.0}
+
+
+def test_deadline_and_retry_of_the_same_seq(det, monkeypatch, scan_a, ref_a):
+    with running(det, deadline_ms=100) as w:
+        gate = StepGate.install(det, monkeypatch)
+        blocker = w.submit(sector_msg("z", 0, scan_a[0]))
+        assert gate.entered.wait(30)
+        late = w.submit(sector_msg("car", 0, scan_a[0]))
+        time.sleep(0.3)
+        gate.release()
+        ok(blocker)
+        e = err(late)
+        assert e.code == ErrorCode.DEADLINE_EXCEEDED and "deadline is 100 ms" in e.message
+        check(ok(w.submit(sector_msg("car", 0, scan_a[0]))), ref_a[0])  # a failed seq may be sent again
+
+
+def test_failed_batch_answers_errors_and_states_stay(det, monkeypatch, scan_a, scan_b, ref_a, ref_b):
+    with running(det) as w:
+        ok(w.submit(sector_msg("a", 0, scan_a[0])))
+        gate = StepGate.install(det, monkeypatch)
+        gate.fail_at = {1}
+        blocker = w.submit(sector_msg("z", 0, scan_a[0]))
+        assert gate.entered.wait(30)
+        fa, fb = w.submit(sector_msg("a", 1, scan_a[1])), w.submit(sector_msg("b", 0, scan_b[0]))
+        gate.release()
+        ok(blocker)
+        for f in (fa, fb):
+            e = err(f)
+            assert e.code == ErrorCode.INTERNAL and "injected fault" in e.message
+        check(ok(w.submit(sector_msg("a", 1, scan_a[1]))), ref_a[1])  # state as before the failed batch
+        check(ok(w.submit(sector_msg("b", 0, scan_b[0]))), ref_b[0])
+        assert gate.batches == [1, 2, 1, 1]
+
+
+def test_bad_points_never_enter_a_batch(det, monkeypatch, scan_a):
+    with running(det) as w:
+        gate = StepGate.install(det, monkeypatch, closed=False)
+        nan = scan_a[0].copy()
+        nan[5, 2] = np.nan
+        e = err(w.submit(sector_msg("car", 0, nan)))
+        assert e.code == ErrorCode.INVALID_FIELD and e.field == "points" and "NaN" in e.message
+        e = err(w.submit(sector_msg("car", 0, scan_a[0], index=4)))
+        assert e.code == ErrorCode.INVALID_FIELD and e.field == "sector_index" and "0..3" in e.message
+        e = err(w.submit(sector_msg("car", 0, np.zeros(8, np.float32))))
+        assert e.code == ErrorCode.INVALID_FIELD and e.field == "points" and "2-D" in e.message
+        assert gate.batches == [] and w.streams() == []
+        ok(w.submit(sector_msg("car", 0, scan_a[0])))  # the stream starts cleanly afterwards
+
+
+def test_stream_limit(det, scan_a):
+    with running(det, max_streams=2) as w:
+        ok(w.submit(sector_msg("a", 0, scan_a[0])))
+        ok(w.submit(sector_msg("b", 0, scan_a[0])))
+        e = err(w.submit(sector_msg("c", 0, scan_a[0])))
+        assert e.code == ErrorCode.OVERLOADED and e.field == "stream_id" and "max_streams=2" in e.message
+        assert e.retry_after_s == 10.0
+        w.end_stream("a")
+        ok(w.submit(sector_msg("c", 0, scan_a[0])))
+
+
+def test_idle_eviction(det, scan_a):
+    with running(det, idle_timeout_s=0.2) as w:
+        ok(w.submit(sector_msg("a", 0, scan_a[0])))
+        ok(w.submit(sector_msg("b", 0, scan_a[0])))
+        deadline = time.monotonic() + 10
+        while w.streams() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert w.streams() == []
+        assert w.metrics.evictions._value.get() == 2
+        r = ok(w.submit(sector_msg("a", 1, scan_a[1])))
+        assert r.context_sectors == 1  # evicted: the stream starts cold
+
+
+def test_end_stream(det, monkeypatch, scan_a):
+    with running(det) as w:
+        with pytest.raises(ServiceError) as info:
+            w.end_stream("nope")
+        e = info.value
+        assert e.code == ErrorCode.UNKNOWN_STREAM and "'nope'" in e.message
+        gate = StepGate.install(det, monkeypatch)
+        running_one = w.submit(sector_msg("car", 0, scan_a[0]))
+        assert gate.entered.wait(30)
+        queued = w.submit(sector_msg("car", 1, scan_a[1]))
+        w.end_stream("car")
+        assert err(queued).code == ErrorCode.UNKNOWN_STREAM
+        gate.release()
+        assert ok(running_one).context_sectors == 1  # the sector in the forward still gets its answer
+        assert w.streams() == []
+
+
+def test_not_ready_during_warm_up(det, monkeypatch, scan_a):
+    gate = StepGate.install(det, monkeypatch)
+    w = Worker(det, WorkerConfig(warmup_sectors=1))
+    w.start()
+    try:
+        assert gate.entered.wait(30) and not w.ready
+        e = err(w.submit(sector_msg("car", 0, scan_a[0])))
+        assert e.code == ErrorCode.NOT_READY and "warming up" in e.message
+        gate.release()
+        assert w.wait_ready(30)
+    finally:
+        w.close(10)
+
+
+def test_close_drains_everything_in_flight(det, monkeypatch, scan_a):
+    w = Worker(det, WorkerConfig(warmup_sectors=1))
+    w.start()
+    assert w.wait_ready(60)
+    gate = StepGate.install(det, monkeypatch)
+    futs = [w.submit(sector_msg(f"s{i}", 0, scan_a[0])) for i in range(3)]
+    futs.append(w.submit(sector_msg("s0", 1, scan_a[1])))
+    assert gate.entered.wait(30)
+    closer = threading.Thread(target=w.close, args=(30,))
+    closer.start()
+    time.sleep(0.1)
+    late = w.submit(sector_msg("s9", 0, scan_a[0]))
+    assert err(late).code == ErrorCode.NOT_READY
+    gate.release()
+    closer.join(60)
+    assert [ok(f).seq for f in futs] == [0, 0, 0, 1]
+    assert answered(w) == {"ok": 4.0, "not_ready": 1.0}
+
+
+def test_close_answers_what_the_drain_timeout_leaves(det, monkeypatch, scan_a):
+    w = Worker(det, WorkerConfig(warmup_sectors=1))
+    w.start()
+    assert w.wait_ready(60)
+    gate = StepGate.install(det, monkeypatch)
+    in_forward = w.submit(sector_msg("s0", 0, scan_a[0]))
+    assert gate.entered.wait(30)
+    queued = [w.submit(sector_msg(f"s{i}", 0, scan_a[0])) for i in (1, 2)]
+    closer = threading.Thread(target=w.close, args=(0.2,))
+    closer.start()
+    for f in queued:  # answered at the drain timeout although the forward is still stuck
+        e = err(f)
+        assert e.code == ErrorCode.NOT_READY and "shut down before this sector ran" in e.message
+    assert not in_forward.done()
+    gate.release()
+    closer.join(60)
+    assert ok(in_forward).seq == 0
+    assert answered(w) == {"ok": 1.0, "not_ready": 2.0}
