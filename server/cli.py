@@ -11,9 +11,11 @@ import typer
 
 from clients.cli import register as register_clients
 from model.cli import bench_app, model_app
+from server.bench import bench_server_cmd
 
 app = typer.Typer(help="PHiM streaming LiDAR detector.", no_args_is_help=True, add_completion=False)
 app.add_typer(model_app, name="model")
+bench_app.command("server")(bench_server_cmd)
 app.add_typer(bench_app, name="bench")
 register_clients(app)  # phim loadtest, phim replay
 
@@ -36,7 +38,7 @@ def serve(
     threads: Annotated[int | None, typer.Option(help="torch CPU threads, 0: default [PHIM_THREADS]")] = None,
     max_batch: Annotated[int | None, typer.Option(help="streams per forward [PHIM_MAX_BATCH; 8]")] = None,
     max_wait_ms: Annotated[
-        float | None, typer.Option(help="wait for a fuller batch [PHIM_MAX_WAIT_MS; 2]")
+        float | None, typer.Option(help="wait for a fuller batch [PHIM_MAX_WAIT_MS; 0]")
     ] = None,
     queue_size: Annotated[
         int | None, typer.Option(help="queued sectors before 503 [PHIM_QUEUE_SIZE; 64]")

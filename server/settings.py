@@ -40,7 +40,7 @@ class Settings(BaseSettings):
     warmup_sectors: int = Field(5, ge=0)
     # scheduler and stream table
     max_batch: int = Field(8, ge=1)
-    max_wait_ms: float = Field(2.0, ge=0)
+    max_wait_ms: float = Field(0.0, ge=0)
     queue_size: int = Field(64, ge=1)
     deadline_ms: float = Field(2000.0, gt=0)
     idle_timeout_s: float = Field(10.0, gt=0)
