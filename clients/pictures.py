@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 CLASS_COLOURS = {"vehicle": "tab:red", "car": "tab:red", "pedestrian": "tab:orange", "cyclist": "tab:purple"}
-LABEL_COLOUR = "tab:green"
+LABEL_COLOUR = "lime"
 MAX_POINTS = 60_000
 
 

@@ -179,14 +179,21 @@ class _Pending:
         self.loop = loop
         self.future = future
         self.answered = False
+        self._lock = threading.Lock()  # zenoh may call on_reply and on_done from different threads
 
     def on_reply(self, reply: zenoh.Reply) -> None:
-        if not self.answered:
+        outcome = reply_outcome(reply)
+        with self._lock:
+            if self.answered:
+                return
             self.answered = True
-            self._resolve(reply_outcome(reply))
+            self._resolve(outcome)
 
     def on_done(self) -> None:  # the get ended (finalized or timed out): resolves a get nobody answered
-        self._resolve(None)
+        with self._lock:
+            if not self.answered:
+                self.answered = True
+                self._resolve(None)
 
     def _resolve(self, outcome: Outcome | None) -> None:
         with contextlib.suppress(RuntimeError):  # a closed loop: nobody waits for this answer any more

@@ -11,7 +11,7 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 # CPU torch wheel pinned for local venvs and CI; GPU images install their CUDA build (see Dockerfile).
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check torch==2.13.0
-"$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[server,dev]"
+"$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[server,clients,dev]"
 
 "$VENV/bin/ruff" check .
 "$VENV/bin/ruff" format --check .

@@ -181,6 +181,12 @@ class Worker:
                 "fields",
             )
         points = np.array(msg.points, dtype=np.float32, copy=True)  # (N, C), owns its memory
+        if points.ndim != 2 or points.shape[1] < 4:
+            raise ServiceError(
+                ErrorCode.INVALID_FIELD,
+                f"points: shape {points.shape}; expected 2-D (N, C>=4): x, y, z, intensity[, ...]",
+                "points",
+            )
         # numpy, not torch: a torch op here would start a second OpenMP team in the transport's thread,
         # competing for the cores with the device loop's (the model checks its input again anyway)
         bad = ~np.isfinite(points).all(axis=1)  # (N,)

@@ -54,8 +54,16 @@ class LoadTestReport:
         return max(held) if held else None
 
     @property
+    def peak_step(self) -> StepResult:
+        """The step with the most sectors answered per second (the closed-loop throughput ceiling)."""
+        return max(self.steps, key=lambda s: s.achieved_sectors_per_s)
+
+    @property
     def result_step(self) -> StepResult:
-        """The step the headline numbers describe: the one at max_vehicles_held, else the first."""
+        """The step the headline numbers describe: closed loop, the peak; open loop, the one at
+        max_vehicles_held, else the first."""
+        if self.mode == "closed":
+            return self.peak_step
         best = self.max_vehicles_held
         return next((s for s in self.steps if s.vehicles == best), self.steps[0])
 
@@ -92,6 +100,8 @@ def to_json(report: LoadTestReport) -> dict[str, Any]:
             "sweep": report.config.sweep,
             "p99_bound_ms": report.config.p99_bound_ms,
             "max_vehicles_held": report.max_vehicles_held,
+            "peak_achieved_sectors_per_s": report.peak_step.achieved_sectors_per_s,
+            "peak_vehicles": report.peak_step.vehicles,
             "totals": {k: sum(getattr(s, k) for s in report.steps) for k in TOTALS},
             "steps": [step_dict(s) for s in report.steps],
             "config": dataclasses.asdict(report.config),
@@ -142,14 +152,23 @@ def table(report: LoadTestReport) -> str:
             f"{_ms(s.server_model_p50_ms)} | "
             f"{_ms(s.server_total_p50_ms)} | {errors} | {lost} | {'yes' if s.held else 'no'} |"
         )
-    held = report.max_vehicles_held
-    cfg = report.config
-    rows.append("")
-    rows.append(
-        f"{report.transport}, {report.mode} loop, {cfg.turns_per_s:g} turns/s x {report.sectors_per_turn} "
-        f"sectors per vehicle, {cfg.duration_s:g} s per step; latency in ms from each sector's scheduled "
-        f"time "
-        f"(server columns: p50 of the reply timings). Most vehicles held (p99 <= {cfg.p99_bound_ms:g} ms, "
-        f"no errors, nothing lost): {held if held is not None else 'none'}."
-    )
+    rows += ["", _footer(report)]
     return "\n".join(rows)
+
+
+def _footer(report: LoadTestReport) -> str:
+    cfg = report.config
+    if report.mode == "closed":
+        peak = report.peak_step
+        return (
+            f"{report.transport}, closed loop (each vehicle sends its next sector when answered), "
+            f"{cfg.duration_s:g} s per step; latency in ms from send. Throughput ceiling: "
+            f"{peak.achieved_sectors_per_s:.1f} sectors/s with {peak.vehicles} vehicles."
+        )
+    held = report.max_vehicles_held
+    return (
+        f"{report.transport}, open loop, {cfg.turns_per_s:g} turns/s x {report.sectors_per_turn} sectors per "
+        f"vehicle, {cfg.duration_s:g} s per step; latency in ms from each sector's scheduled time (server "
+        f"columns: p50 of the reply timings). Most vehicles held (p99 <= {cfg.p99_bound_ms:g} ms, no errors, "
+        f"nothing lost): {held if held is not None else 'none'}."
+    )

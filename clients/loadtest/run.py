@@ -9,7 +9,7 @@ from pathlib import Path
 
 from clients.base import ClientError, DetectorClient
 from clients.connect import make_client
-from clients.loadtest.config import LoadTestConfig, OutputConfig
+from clients.loadtest.config import LoadTestConfig, Mode, OutputConfig
 from clients.loadtest.plots import write_plots
 from clients.loadtest.progress import LiveProgress
 from clients.loadtest.report import LoadTestReport, write_csv, write_json
@@ -59,7 +59,7 @@ async def _run_steps(
                 live.start_step(vehicles, cfg.duration_s)
                 step = await runner.run(vehicles, live.tick)
                 results.append(summarize(step, cfg, client.transport))
-                if cfg.sweep and cfg.stop_after_failure and not results[-1].held:
+                if cfg.sweep and cfg.mode is Mode.OPEN and cfg.stop_after_failure and not results[-1].held:
                     break
     finally:
         await client.aclose()

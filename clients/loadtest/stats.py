@@ -47,7 +47,7 @@ class StepResult:
     server_total_p99_ms: float
     send_lag_p99_ms: float  # how late the client itself sent (a busy client shows here, not hidden)
     boxes_per_reply: float
-    held: bool  # p99 <= bound, no errors, nothing lost
+    held: bool  # open loop: p99 <= bound, no errors, nothing lost (closed loop: always False)
     latencies_ms: list[float] = field(default_factory=list, repr=False, compare=False)
 
 
@@ -89,7 +89,9 @@ def summarize(step: StepRun, cfg: LoadTestConfig, transport: str) -> StepResult:
         **server,
         send_lag_p99_ms=_pct(lag, 99.0),
         boxes_per_reply=float(np.mean([r.boxes for r in ok])) if ok else 0.0,
-        held=bool(lat.size and p["p99"] <= cfg.p99_bound_ms and not errors and not lost),
+        held=bool(
+            cfg.mode is Mode.OPEN and lat.size and p["p99"] <= cfg.p99_bound_ms and not errors and not lost
+        ),
         latencies_ms=lat.tolist(),
     )
 
