@@ -46,7 +46,7 @@ MSGPACK_TYPES = (MSGPACK, "application/x-msgpack", "application/vnd.msgpack")
 
 
 class Closeable(Protocol):
-    def close(self) -> None: ...
+    def close(self, drain_timeout_s: float) -> None: ...
 
 
 @dataclass
@@ -108,13 +108,11 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        det, source = (
-            (detector, model_source)
-            if detector is not None
-            else await asyncio.to_thread(build_detector, settings)
-        )
+        def load() -> tuple[StreamingDetector, str]:  # runs in the worker's device thread
+            return (detector, model_source) if detector is not None else build_detector(settings)
+
         metrics = Metrics()
-        worker = Worker(det, settings.worker_config(source), metrics)
+        worker = Worker(load, settings.worker_config(), metrics)
         worker.start()
         zenoh: Closeable | None = None
         try:
@@ -123,10 +121,10 @@ def create_app(
             app.state.services = Services(settings, worker, metrics, settings.limits())
             yield
         finally:
-            log.info("shutting down: draining the worker (up to %.1f s)", settings.drain_timeout_s)
+            log.info("shutting down: draining (up to %.1f s)", settings.drain_timeout_s)
+            if zenoh is not None:  # first: withdraw the liveliness token, answer zenoh's sectors in flight
+                await asyncio.to_thread(zenoh.close, settings.drain_timeout_s)
             await asyncio.to_thread(worker.close, settings.drain_timeout_s)
-            if zenoh is not None:
-                await asyncio.to_thread(zenoh.close)
             log.info("worker %s stopped", worker.worker_id)
 
     app = FastAPI(title="PHiM detection server", version=package_version(), lifespan=lifespan)

@@ -77,7 +77,7 @@ class Settings(BaseSettings):
     def limits(self) -> Limits:
         return Limits(self.max_body_bytes, self.max_points, self.max_string_len, self.max_fields)
 
-    def worker_config(self, model_source: str) -> WorkerConfig:
+    def worker_config(self) -> WorkerConfig:
         return WorkerConfig(
             worker_id=self.worker_id,
             max_batch=self.max_batch,
@@ -87,7 +87,6 @@ class Settings(BaseSettings):
             idle_timeout_s=self.idle_timeout_s,
             max_streams=self.max_streams,
             warmup_sectors=self.warmup_sectors,
-            model_source=model_source,
         )
 
     def zenoh_config(self) -> ZenohConfig:

@@ -14,6 +14,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
 from typing import Any
@@ -42,14 +43,25 @@ class WorkerConfig:
     idle_timeout_s: float = 10.0
     max_streams: int = 256
     warmup_sectors: int = 5
-    model_source: str = ""  # where the weights came from (for /v1/model and the log)
 
 
 class Worker:
+    """One model, one device thread, many streams.
+
+    `load` builds the detector and says where its weights come from. It runs in the device thread, the only
+    thread that runs the model: with OpenMP, a second thread that has run parallel CPU ops (even just
+    building the model) makes every forward about 3x slower on a 2-core machine (libgomp throttles its
+    spin-waits once it manages more threads than there are CPUs)."""
+
     def __init__(
-        self, det: StreamingDetector, cfg: WorkerConfig = WorkerConfig(), metrics: Metrics | None = None
+        self,
+        load: Callable[[], tuple[StreamingDetector, str]],
+        cfg: WorkerConfig = WorkerConfig(),
+        metrics: Metrics | None = None,
     ):
-        self.det = det
+        self._load = load
+        self._det: StreamingDetector | None = None
+        self._source = ""  # where the weights came from (for /v1/model)
         self.cfg = cfg
         self.worker_id = cfg.worker_id
         self.metrics = metrics or Metrics()
@@ -87,7 +99,7 @@ class Worker:
     @property
     def status(self) -> str:
         if self._warmup_error:
-            return f"warm-up failed: {self._warmup_error}"
+            return f"start-up failed: {self._warmup_error}"
         if self._closing:
             return "shutting down"
         return "ready" if self._ready else "warming up"
@@ -137,8 +149,15 @@ class Worker:
                 raise self.table.unknown(stream_id)
             return entry.summary(time.monotonic())
 
+    @property
+    def det(self) -> StreamingDetector:
+        """The detector, once the device thread has loaded it (NOT_READY before)."""
+        if self._det is None:
+            raise ServiceError(ErrorCode.NOT_READY, f"worker {self.worker_id}: {self.status}; no model yet")
+        return self._det
+
     def model_info(self) -> dict[str, Any]:
-        return model_info(self.det, self.cfg.model_source, self.worker_id)
+        return model_info(self.det, self._source, self.worker_id)
 
     def close(self, drain_timeout_s: float = 10.0, forward_grace_s: float = 30.0) -> None:
         """Stop taking sectors and answer every queued one: run while the drain timeout lasts, NOT_READY after
@@ -245,9 +264,10 @@ class Worker:
 
     def _run(self) -> None:
         try:
-            self._batch_s = warm_up(self.det, self.cfg.warmup_sectors)
+            self._det, self._source = self._load()
+            self._batch_s = warm_up(self._det, self.cfg.warmup_sectors)
         except Exception as e:
-            log.exception("warm-up failed; the worker will never be ready")
+            log.exception("loading or warming up the model failed; the worker will never be ready")
             with self._cond:
                 self._warmup_error = f"{type(e).__name__}: {e}"
                 self._cond.notify_all()

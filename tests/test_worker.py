@@ -52,7 +52,7 @@ def ref_b(det: StreamingDetector, scan_b: list[np.ndarray]) -> list[Any]:
 
 @contextlib.contextmanager
 def running(det: StreamingDetector, **kw: Any) -> Iterator[Worker]:
-    w = Worker(det, WorkerConfig(warmup_sectors=1, **kw))
+    w = Worker(lambda: (det, "test detector"), WorkerConfig(warmup_sectors=1, **kw))
     w.start()
     assert w.wait_ready(60), w.status
     try:
@@ -246,7 +246,7 @@ def test_end_stream(det, monkeypatch, scan_a):
 
 def test_not_ready_during_warm_up(det, monkeypatch, scan_a):
     gate = StepGate.install(det, monkeypatch)
-    w = Worker(det, WorkerConfig(warmup_sectors=1))
+    w = Worker(lambda: (det, "test detector"), WorkerConfig(warmup_sectors=1))
     w.start()
     try:
         assert gate.entered.wait(30) and not w.ready
@@ -259,7 +259,7 @@ def test_not_ready_during_warm_up(det, monkeypatch, scan_a):
 
 
 def test_close_drains_everything_in_flight(det, monkeypatch, scan_a):
-    w = Worker(det, WorkerConfig(warmup_sectors=1))
+    w = Worker(lambda: (det, "test detector"), WorkerConfig(warmup_sectors=1))
     w.start()
     assert w.wait_ready(60)
     gate = StepGate.install(det, monkeypatch)
@@ -278,7 +278,7 @@ def test_close_drains_everything_in_flight(det, monkeypatch, scan_a):
 
 
 def test_close_answers_what_the_drain_timeout_leaves(det, monkeypatch, scan_a):
-    w = Worker(det, WorkerConfig(warmup_sectors=1))
+    w = Worker(lambda: (det, "test detector"), WorkerConfig(warmup_sectors=1))
     w.start()
     assert w.wait_ready(60)
     gate = StepGate.install(det, monkeypatch)

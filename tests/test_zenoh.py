@@ -60,7 +60,10 @@ def client_session(endpoint: str, mode: str = "client") -> zenoh.Session:
 
 
 def start_worker(det: StreamingDetector, **kw: Any) -> Worker:
-    worker = Worker(det, WorkerConfig(worker_id="zenoh-test", warmup_sectors=1, deadline_ms=60_000, **kw))
+    worker = Worker(
+        lambda: (det, "test detector"),
+        WorkerConfig(worker_id="zenoh-test", warmup_sectors=1, deadline_ms=60_000, **kw),
+    )
     worker.start()
     assert worker.wait_ready(120), worker.status
     return worker
