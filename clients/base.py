@@ -97,6 +97,10 @@ class DetectorClient(abc.ABC):
     """
 
     transport: str  # "http" or "zenoh"
+    # whether sectors of one stream sent while earlier ones are in flight reach the server in send order
+    # (zenoh: one session, one link, a FIFO queryable); over HTTP concurrent requests travel on separate
+    # connections and may overtake each other, and the server rejects an overtaken sector as stale
+    keeps_order_in_flight: bool = False
 
     @abc.abstractmethod
     def send(self, msg: SectorMessage) -> DetectionsReply:

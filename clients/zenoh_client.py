@@ -65,6 +65,7 @@ class ZenohClient(DetectorClient):
     """The detector over zenoh request/reply. Send one stream's sectors from one client (ordering)."""
 
     transport = "zenoh"
+    keeps_order_in_flight = True
 
     def __init__(self, config: ZenohClientConfig | None = None, **overrides: Any):
         cfg = config or ZenohClientConfig(**overrides)

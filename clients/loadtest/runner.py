@@ -2,9 +2,12 @@
 
 Open loop: each vehicle's k-th sector is due at t0 + offset_v + k / rate and is sent then, whatever became of
 the earlier ones (a send is a task of its own); its latency runs from the due time, so a server that falls
-behind shows it in full (no coordinated omission). Closed loop: each vehicle sends its next sector as soon as
-the last one is answered (in flight = vehicles). After the sending window, outstanding sectors get up to
-`drain_timeout_s`; what is still unanswered then is lost. Every scheduled sector is one Record.
+behind shows it in full (no coordinated omission). Over a transport that does not keep one stream's requests
+in order while several are in flight (HTTP), a vehicle's sector is sent once its previous one is answered,
+as wrk2 does on one connection; its latency still runs from its due time.
+Closed loop: each vehicle sends its next sector as soon as the last one is answered (in flight = vehicles).
+After the sending window, outstanding sectors get up to `drain_timeout_s`; what is still unanswered then is
+lost. Every scheduled sector is one Record.
 """
 
 from __future__ import annotations
@@ -84,6 +87,7 @@ class StepRunner:
     ) -> None:
         loop = asyncio.get_running_loop()
         n = int(step.duration_s / self.period_s)
+        previous: asyncio.Task[None] | None = None
         for k in range(n):
             due = step.t0 + offset + k * self.period_s
             delay = due - loop.time()
@@ -91,9 +95,11 @@ class StepRunner:
                 await asyncio.sleep(delay)
             rec = Record(v, k, due)
             step.records.append(rec)
-            task = asyncio.create_task(self._send(step, rec))
+            after = None if self.client.keeps_order_in_flight else previous
+            task = asyncio.create_task(self._send(step, rec, after))
             tasks.add(task)
             task.add_done_callback(tasks.discard)
+            previous = task
 
     # ---------------------------------------------------------------------------------------- closed loop
 
@@ -126,8 +132,11 @@ class StepRunner:
             fields=self.source.fields,
         )
 
-    async def _send(self, step: StepRun, rec: Record) -> None:
+    async def _send(self, step: StepRun, rec: Record, after: asyncio.Task[None] | None = None) -> None:
+        """Send rec's sector (once `after`, the vehicle's previous send, is done) and settle the record."""
         loop = asyncio.get_running_loop()
+        if after is not None:
+            await asyncio.wait({after})
         msg = self._message(step, rec)
         rec.sent = loop.time()
         step.inflight += 1
