@@ -90,6 +90,7 @@ def start_zenoh(settings: Settings, worker: Worker) -> Closeable:
         settings.zenoh_config(),
         worker.worker_id,
         settings.limits(),
+        on_reject=lambda code: worker.metrics.count("zenoh", code.value),
     )
     transport.start()
     log.info(

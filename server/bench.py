@@ -183,7 +183,9 @@ def bench_server_cmd(
 ) -> None:
     """End-to-end latency per sector beside the model's own time: the server's overhead per transport."""
     from model.cli import KITTI_000000
+    from model.runtime import tune_malloc
 
+    tune_malloc()  # the client side too: sector-sized buffers stay on the heap
     scan = points or KITTI_000000
     if not scan.is_file():
         raise typer.BadParameter(f"{scan}: no such file (give --points)")

@@ -208,8 +208,8 @@ class Worker:
             )
         # numpy, not torch: a torch op here would start a second OpenMP team in the transport's thread,
         # competing for the cores with the device loop's (the model checks its input again anyway)
-        bad = ~np.isfinite(points).all(axis=1)  # (N,)
-        if bad.any():
+        if not np.isfinite(points).all():  # a flat check first: the per-row one is ~30x slower
+            bad = ~np.isfinite(points).all(axis=1)  # (N,)
             raise ServiceError(
                 ErrorCode.INVALID_FIELD,
                 f"points: {int(bad.sum())} rows contain NaN or inf values (row {int(bad.argmax())} first); "

@@ -140,8 +140,17 @@ class ZenohTransport:
     """Queryable `{prefix}/streams/*/sector`, subscriber `{prefix}/streams/*/sectors`, liveliness token
     `{prefix}/workers/{worker_id}`; results on `.../{id}/detections`, errors on `.../{id}/errors`."""
 
-    def __init__(self, submit: Submit, cfg: ZenohConfig, worker_id: str, limits: Limits):
+    def __init__(
+        self,
+        submit: Submit,
+        cfg: ZenohConfig,
+        worker_id: str,
+        limits: Limits,
+        on_reject: Callable[[ErrorCode], None] | None = None,
+    ):
+        """`on_reject` hears of every sector answered with an error before it reached `submit` (metrics)."""
         self.submit = submit
+        self.on_reject = on_reject
         self.cfg = cfg
         self.worker_id = worker_id
         self.limits = limits
@@ -243,11 +252,11 @@ class ZenohTransport:
             msg = decode_sector(data, self.limits, stream_id=job.key_id)
         except ServiceError as e:
             log.debug("zenoh: rejected a sector on %s: %s", key, e.message)
-            self._outbox.put((job, job.error(e)))
+            self._reject(job, e)
             return
         except Exception as e:  # a bug, not the sender's fault; the sector is answered all the same
             log.exception("zenoh: decoding a sector on %s failed", key)
-            self._outbox.put((job, job.error(ServiceError(ErrorCode.INTERNAL, f"{type(e).__name__}: {e}"))))
+            self._reject(job, ServiceError(ErrorCode.INTERNAL, f"{type(e).__name__}: {e}"))
             return
         job.stream_id, job.seq = msg.stream_id, msg.seq
         with self._cond:
@@ -259,6 +268,11 @@ class ZenohTransport:
             future = Future()
             future.set_exception(e)
         future.add_done_callback(partial(self._settled, job))
+
+    def _reject(self, job: _Job, e: ServiceError) -> None:
+        if self.on_reject is not None:
+            self.on_reject(e.code)
+        self._outbox.put((job, job.error(e)))
 
     def _settled(self, job: _Job, future: Future[DetectionsReply]) -> None:
         """Done-callback (worker thread): hand the outcome to the replier; never touches zenoh."""
