@@ -15,8 +15,6 @@ from server_helpers import (
     StepGate,
     assert_same_boxes,
     comparable_detector,
-    kitti_sectors,
-    run_direct,
     sector_msg,
 )
 
@@ -28,26 +26,6 @@ from server.worker import Worker, WorkerConfig
 @pytest.fixture(scope="module")
 def det() -> StreamingDetector:
     return comparable_detector()
-
-
-@pytest.fixture(scope="module")
-def scan_a() -> list[np.ndarray]:
-    return kitti_sectors(0, every=4)
-
-
-@pytest.fixture(scope="module")
-def scan_b() -> list[np.ndarray]:
-    return kitti_sectors(1, every=4)
-
-
-@pytest.fixture(scope="module")
-def ref_a(det: StreamingDetector, scan_a: list[np.ndarray]) -> list[Any]:
-    return run_direct(det, scan_a)
-
-
-@pytest.fixture(scope="module")
-def ref_b(det: StreamingDetector, scan_b: list[np.ndarray]) -> list[Any]:
-    return run_direct(det, scan_b)
 
 
 @contextlib.contextmanager

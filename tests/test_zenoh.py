@@ -21,8 +21,6 @@ from server_helpers import (
     StepGate,
     assert_same_boxes,
     default_detector,
-    kitti_sectors,
-    run_direct,
     sector_msg,
     serve,
 )
@@ -144,26 +142,6 @@ def is_error(out: Any, code: ErrorCode, field: str | None = None, stream: str | 
 @pytest.fixture(scope="module")
 def det() -> StreamingDetector:
     return default_detector()
-
-
-@pytest.fixture(scope="module")
-def scan_a() -> list[np.ndarray]:
-    return kitti_sectors(0, every=4)
-
-
-@pytest.fixture(scope="module")
-def scan_b() -> list[np.ndarray]:
-    return kitti_sectors(1, every=4)
-
-
-@pytest.fixture(scope="module")
-def ref_a(det: StreamingDetector, scan_a: list[np.ndarray]) -> list[Any]:
-    return run_direct(det, scan_a)
-
-
-@pytest.fixture(scope="module")
-def ref_b(det: StreamingDetector, scan_b: list[np.ndarray]) -> list[Any]:
-    return run_direct(det, scan_b)
 
 
 @pytest.fixture(scope="module")
