@@ -3,7 +3,7 @@
 Each scan is cut into the model's sectors in sweep order (clients.sectorizer.split_scan) and sent in order;
 every sector's answer (detections or the server's error) becomes one record of the prediction file
 (clients.predictions). With `frames_dir`, one bird's-eye-view PNG per scan after its last sector: points,
-the predicted boxes and, for KITTI scans with label_2 + calib beside them, the labels.
+the predicted boxes and the labels when they sit beside the scan (KITTI label_2 + calib, nuScenes boxes).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 
 from clients.base import DetectorClient, ServerError
 from clients.connect import ConnectConfig, make_client
-from clients.kitti_labels import kitti_labels_for
+from clients.labels import labels_for
 from clients.pictures import BoxSet, draw_bev
 from clients.predictions import PredictionRecord, PredictionWriter
 from clients.recordings import Scan, find_scans, read_scan
@@ -166,7 +166,7 @@ def _send(
 
 
 def draw_scan(folder: Path, scan: Scan, prediction: PredictionRecord) -> Path:
-    labels = kitti_labels_for(scan.path) if scan.path.suffix == ".bin" else None
+    labels = labels_for(scan.path)
     return draw_bev(
         folder / f"{scan.name}.png",
         scan.points,

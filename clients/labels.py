@@ -1,7 +1,9 @@
-"""KITTI label_2 boxes in the velodyne frame (for drawing beside the predictions).
+"""Ground-truth boxes of recorded scans, in the frame the clients read the scans in (to draw beside the
+predictions).
 
-label_2 boxes are in the rectified camera frame with (x, y, z) the bottom centre; with calib R0_rect and
-Tr_velo_to_cam: centre_velo = inv(R0 · Tr) · (x, y − h/2, z, 1), yaw_velo = −ry − π/2, dims (l, w, h).
+KITTI: label_2 boxes are in the rectified camera frame with (x, y, z) the bottom centre; with calib R0_rect
+and Tr_velo_to_cam: centre_velo = inv(R0 · Tr) · (x, y − h/2, z, 1), yaw_velo = −ry − π/2, dims (l, w, h).
+nuScenes: see `nuscenes_labels_for`.
 """
 
 from __future__ import annotations
@@ -63,3 +65,33 @@ def kitti_labels_for(scan_path: Path) -> LabelBoxes | None:
     if not (label.is_file() and calib.is_file()):
         return None
     return read_kitti_labels(label, calib)
+
+
+def nuscenes_labels_for(scan_path: Path) -> LabelBoxes | None:
+    """The boxes of a nuScenes LIDAR_TOP sweep (NAME.pcd.bin -> NAME_boxes.txt beside it), turned into the
+    frame `clients.recordings` reads the sweep in (x forward, y left: x' = y, y' = -x, yaw' = yaw - pi/2).
+
+    The boxes file: `class x y z l w h yaw ...` per line, box centres in the LIDAR_TOP frame (x right,
+    y forward), yaw counter-clockwise from +x; `#` starts a comment; class `ignore` is skipped.
+    """
+    scan_path = Path(scan_path)
+    boxes_path = scan_path.with_name(scan_path.name.removesuffix(".pcd.bin") + "_boxes.txt")
+    if not boxes_path.is_file():
+        return None
+    boxes, names = [], []
+    for line in boxes_path.read_text().splitlines():
+        parts = line.split()
+        if not parts or parts[0].startswith("#") or parts[0] == "ignore":
+            continue
+        x, y, z, length, w, h, yaw = (float(v) for v in parts[1:8])
+        boxes.append([y, -x, z, length, w, h, yaw - math.pi / 2])
+        names.append(parts[0])
+    return LabelBoxes(np.array(boxes, dtype=np.float32).reshape(-1, 7), tuple(names))
+
+
+def labels_for(scan_path: Path) -> LabelBoxes | None:
+    """Ground-truth boxes beside a recorded scan, if any (KITTI label_2 + calib, nuScenes boxes file)."""
+    scan_path = Path(scan_path)
+    if scan_path.name.endswith(".pcd.bin"):
+        return nuscenes_labels_for(scan_path)
+    return kitti_labels_for(scan_path) if scan_path.suffix == ".bin" else None
