@@ -101,28 +101,23 @@ class HttpClient(DetectorClient):
 
     # ------------------------------------------------------------------------------------------ plumbing
 
-    def _client(self) -> httpx.Client:
+    def _options(self) -> dict[str, Any]:
+        """What both httpx clients are built with (raises once this client is closed)."""
         if self._closed:
             raise TransportError("the client is closed")
+        url, trust_env = self.config.url, self.config.trust_env
+        return {"base_url": url, "timeout": self._timeout, "limits": self._limits, "trust_env": trust_env}
+
+    def _client(self) -> httpx.Client:
+        options = self._options()
         if self._sync is None:
-            self._sync = httpx.Client(
-                base_url=self.config.url,
-                timeout=self._timeout,
-                limits=self._limits,
-                trust_env=self.config.trust_env,
-            )
+            self._sync = httpx.Client(**options)
         return self._sync
 
     def _aclient(self) -> httpx.AsyncClient:
-        if self._closed:
-            raise TransportError("the client is closed")
+        options = self._options()
         if self._async is None:
-            self._async = httpx.AsyncClient(
-                base_url=self.config.url,
-                timeout=self._timeout,
-                limits=self._limits,
-                trust_env=self.config.trust_env,
-            )
+            self._async = httpx.AsyncClient(**options)
         return self._async
 
     def close(self) -> None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -152,7 +152,6 @@ def _send(
             latency_ms=(time.monotonic() - start) * 1e3,
             error={"code": e.code.value, "message": e.message, "field": e.field},
         )
-    t = r.timings
     return PredictionRecord(
         **common,
         context_sectors=r.context_sectors,
@@ -160,7 +159,7 @@ def _send(
         scores=r.scores,
         labels=r.labels,
         class_names=r.class_names,
-        timings={"queue_ms": t.queue_ms, "model_ms": t.model_ms, "total_ms": t.total_ms},
+        timings=asdict(r.timings),
         latency_ms=(time.monotonic() - start) * 1e3,
     )
 

@@ -31,6 +31,7 @@ import typer
 
 from clients.base import DetectorClient, sector_message
 from clients.connect import ConnectConfig, Transport, make_client
+from clients.recordings import read_scan
 from clients.sectorizer import split_scan
 
 READY_TIMEOUT_S = 300.0
@@ -134,9 +135,9 @@ def _wait_ready(url: str, proc: subprocess.Popen) -> None:
 
 
 def load_sectors(scan_path: Path, sectors: int = 4) -> list[np.ndarray]:
-    """A KITTI-style float32 (N, 4) scan -> its azimuth sectors (N_k, 4), in sweep order."""
-    scan = np.fromfile(scan_path, dtype=np.float32).reshape(-1, 4)
-    return [s.points for s in split_scan(scan, ("x", "y", "z", "intensity"), sectors)]
+    """A recorded scan (KITTI .bin, nuScenes .pcd.bin, .npz) -> its sectors (N_k, 4), in sweep order."""
+    scan = read_scan(scan_path)
+    return [s.points for s in split_scan(scan.points, scan.fields, sectors, scan.spin)]
 
 
 def run_bench(

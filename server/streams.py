@@ -78,7 +78,6 @@ class StreamTable:
         self.on_evict = on_evict
         self.idle_timeout_s = idle_timeout_s
         self.entries: dict[str, StreamEntry] = {}
-        self.evicted = 0
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -139,5 +138,4 @@ class StreamTable:
             del self.entries[sid]
             if self.on_evict is not None:
                 self.on_evict(sid)
-        self.evicted += len(old)
         return old

@@ -71,7 +71,7 @@ class Worker:
         self._ready = False
         self._closing = False
         self._drain_until = math.inf
-        self._warmup_error: str | None = None
+        self._startup_error: str | None = None
         self._batch_s = 0.1  # moving average of one forward, for Retry-After
         self._evict_tick_s = min(1.0, max(0.01, cfg.idle_timeout_s / 4))
         self._next_evict = 0.0
@@ -91,15 +91,15 @@ class Worker:
 
     @property
     def live(self) -> bool:
-        """The device loop is alive (or not started yet); False after a crash or a failed warm-up."""
-        return self._warmup_error is None and (
+        """The device loop is alive (or not started yet); False after a crash or a failed start-up."""
+        return self._startup_error is None and (
             self._thread is None or self._thread.is_alive() or self._closing
         )
 
     @property
     def status(self) -> str:
-        if self._warmup_error:
-            return f"start-up failed: {self._warmup_error}"
+        if self._startup_error:
+            return f"start-up failed: {self._startup_error}"
         if self._closing:
             return "shutting down"
         return "ready" if self._ready else "warming up"
@@ -109,9 +109,9 @@ class Worker:
         return self._depth
 
     def wait_ready(self, timeout_s: float) -> bool:
-        """Block until warmed up (True) or warm-up failed or the timeout passed (False)."""
+        """Block until warmed up (True), or loading / warm-up failed or the timeout passed (False)."""
         with self._cond:
-            self._cond.wait_for(lambda: self._ready or self._warmup_error is not None, timeout_s)
+            self._cond.wait_for(lambda: self._ready or self._startup_error is not None, timeout_s)
             return self._ready
 
     def submit(self, msg: SectorMessage, transport: str = "direct") -> Future[DetectionsReply]:
@@ -269,7 +269,7 @@ class Worker:
         except Exception as e:
             log.exception("loading or warming up the model failed; the worker will never be ready")
             with self._cond:
-                self._warmup_error = f"{type(e).__name__}: {e}"
+                self._startup_error = f"{type(e).__name__}: {e}"
                 self._cond.notify_all()
             return
         with self._cond:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 from conftest import KITTI_VELODYNE
-from server_helpers import RunningServer, serve
+from server_helpers import RunningServer, free_endpoint, serve
 
 from clients.connect import ConnectConfig, Transport
 from clients.recordings import read_scan
@@ -22,12 +22,6 @@ from model.stream import StreamingDetector
 from server.zenoh_transport import ZenohConfig, open_session
 
 EVERY = 8  # every 8th point of a KITTI scan: ~15k points a turn, fast CPU forwards
-
-
-def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from model.detector import PHiM
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 from server.app import create_app
+from server.bench import free_port
 from server.default_model import DEFAULT_SEED, load_default_model
 from server.protocol import SectorMessage
 from server.settings import Settings
@@ -150,3 +151,8 @@ def serve(det: StreamingDetector, wait_ready: bool = True, **overrides: Any) -> 
     finally:
         server.should_exit = True
         thread.join(60)
+
+
+def free_endpoint() -> str:
+    """A zenoh TCP endpoint on a free loopback port."""
+    return f"tcp/127.0.0.1:{free_port()}"

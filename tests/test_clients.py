@@ -185,10 +185,10 @@ def test_a_timeout_raises_the_transport_exception(turns: list[Any]) -> None:
 
 
 def test_no_server_is_a_transport_error_not_a_timeout(turns: list[Any]) -> None:
-    from client_helpers import free_endpoint
+    from server_helpers import free_endpoint, free_port
 
     k, points = turns[0][0]
-    url = "http://127.0.0.1:" + free_endpoint().rsplit(":", 1)[1]
+    url = f"http://127.0.0.1:{free_port()}"
     with HttpClient(url, timeout_s=2) as http, pytest.raises(TransportError) as e:
         http.send_points("t", 0, k, points)
     assert not isinstance(e.value, RequestTimeout)

@@ -146,9 +146,9 @@ def test_cli_loadtest_and_its_json(served: Served, tmp_path: Path) -> None:
 
 
 def test_cli_loadtest_without_a_server_fails_cleanly(tmp_path: Path) -> None:
-    from client_helpers import free_endpoint
+    from server_helpers import free_port
 
-    url = "http://127.0.0.1:" + free_endpoint().rsplit(":", 1)[1]
+    url = f"http://127.0.0.1:{free_port()}"
     args = ["loadtest", "--url", url, "--duration", "0.5", "--sectors-per-turn", "4", "--synthetic"]
     result = CliRunner().invoke(app, [*args, "--no-progress", "--json", str(tmp_path / "x.json")])
     assert result.exit_code == 0, result.output  # every sector is counted: lost to the transport

@@ -10,7 +10,6 @@ import os
 import re
 import shlex
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -21,7 +20,7 @@ import pytest
 import yaml
 from conftest import REPO
 from pydantic import ValidationError
-from server_helpers import kitti_sectors, sector_msg
+from server_helpers import free_port, kitti_sectors, sector_msg
 
 from server.protocol import DetectionsReply, decode_response, encode_sector
 from server.settings import Settings
@@ -49,12 +48,6 @@ def image_env() -> dict[str, str]:
         if word == "ENV":
             env.update(dict(kv.split("=", 1) for kv in shlex.split(rest)))
     return env
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_dockerfile_essentials():

@@ -5,7 +5,6 @@ that connect to it. Every get has a timeout (a hang fails the test instead of bl
 from __future__ import annotations
 
 import contextlib
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -21,6 +20,7 @@ from server_helpers import (
     StepGate,
     assert_same_boxes,
     default_detector,
+    free_endpoint,
     sector_msg,
     serve,
 )
@@ -41,12 +41,6 @@ GET_TIMEOUT_S = 30.0  # a guard against hangs; replies come as soon as the (CPU)
 BLOCK = zenoh.CongestionControl.BLOCK
 KEYS = KeySpace("phim/v1")
 LIMITS = Limits(max_body_bytes=2 * 2**20, max_points=50_000, max_string_len=64)
-
-
-def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
 def server_config(endpoint: str) -> ZenohConfig:
