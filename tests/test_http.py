@@ -276,8 +276,9 @@ def test_shutdown_answers_everything_in_flight(det, monkeypatch, scan):
     with serve(det) as s:
         gate = StepGate.install(det, monkeypatch)
         with ThreadPoolExecutor(4) as pool:
-            futs = [pool.submit(post, s.url, f"s{i}", 0, small) for i in range(3)]
-            assert gate.entered.wait(30)
+            futs = [pool.submit(post, s.url, "s0", 0, small)]
+            assert gate.entered.wait(30)  # s0's forward is held; the next two queue behind it
+            futs += [pool.submit(post, s.url, f"s{i}", 0, small) for i in (1, 2)]
             wait_for(lambda: metric(s.url, "phim_queue_depth") == 2)
             stopper = threading.Thread(target=s.stop)
             stopper.start()  # uvicorn stops accepting, waits for the requests in flight
