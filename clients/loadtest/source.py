@@ -11,7 +11,7 @@ import numpy as np
 
 from clients.loadtest.config import SourceConfig
 from clients.recordings import find_scans, read_scan
-from clients.sectorizer import MODEL_FIELDS, split_scan
+from clients.sectorizer import MODEL_FIELDS, Spin, split_scan
 
 Turn = list[tuple[int, np.ndarray]]  # (sector_index, (N, 4) float32) in sweep order
 
@@ -53,6 +53,5 @@ def _turn(scan, sectors: int, every: int) -> Turn:
     return _split(scan.points, scan.fields, sectors, every, scan.spin)
 
 
-def _split(points: np.ndarray, fields, sectors: int, every: int, spin=None) -> Turn:
-    kw = {} if spin is None else {"spin": spin}
-    return [(s.index, s.points[:: max(1, every)]) for s in split_scan(points, fields, sectors, **kw)]
+def _split(points: np.ndarray, fields, sectors: int, every: int, spin: Spin = Spin.CCW) -> Turn:
+    return [(s.index, s.points[:: max(1, every)]) for s in split_scan(points, fields, sectors, spin)]
