@@ -14,19 +14,15 @@ in the model's order (x, y, z, intensity by default). Every input point lands in
 
 from __future__ import annotations
 
-import enum
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from model.data.readers import Spin
+
 MODEL_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity")
-
-
-class Spin(enum.StrEnum):
-    CCW = "ccw"  # azimuth increases with time (seen from above): Velodyne/KITTI, Waymo
-    CW = "cw"  # azimuth decreases with time: e.g. nuScenes LIDAR_TOP
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,8 @@ from model.config import PHiMConfig
 from model.detector import PHiM
 
 FORMAT = "phim-checkpoint"
+# the shipped default model (docs/model-card.md); `--checkpoint default` names it
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "tiny-sim.pt"
 VERSION = 1
 
 
@@ -96,3 +98,11 @@ def load_checkpoint(
             f"missing {result.missing_keys[:5]}, unexpected {result.unexpected_keys[:5]}"
         )
     return model.to(device)
+
+
+def resolve_checkpoint(name: str | Path, device: str | torch.device = "cpu") -> tuple[PHiM, Path]:
+    """'default' (the shipped model) or a checkpoint path -> (the model on `device`, eval mode; its path)."""
+    path = DEFAULT_CHECKPOINT if str(name) == "default" else Path(name)
+    if str(name) == "default" and not path.is_file():
+        raise CheckpointError(f"the default checkpoint {path} is missing from this installation")
+    return load_checkpoint(path, device=device).eval(), path

@@ -31,8 +31,8 @@ import typer
 
 from clients.base import DetectorClient, sector_message
 from clients.connect import ConnectConfig, Transport, make_client
-from clients.recordings import read_scan
 from clients.sectorizer import split_scan
+from model.data.readers import read_scan
 
 READY_TIMEOUT_S = 300.0
 

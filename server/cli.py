@@ -11,13 +11,19 @@ import typer
 
 from clients.cli import register as register_clients
 from model.cli import bench_app, model_app
+from model.data.sim.cli import bench_sim_cmd
+from model.data.sim.cli import register as register_sim
+from model.train.cli import register as register_training
 from server.bench import bench_server_cmd
 
 app = typer.Typer(help="PHiM streaming LiDAR detector.", no_args_is_help=True, add_completion=False)
 app.add_typer(model_app, name="model")
 bench_app.command("server")(bench_server_cmd)
+bench_app.command("sim")(bench_sim_cmd)
 app.add_typer(bench_app, name="bench")
 register_clients(app)  # phim loadtest, phim replay
+register_sim(app)  # phim sim
+register_training(app)  # phim train, phim eval
 
 ZENOH = "zenoh"
 

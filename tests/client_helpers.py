@@ -16,8 +16,8 @@ from conftest import KITTI_VELODYNE
 from server_helpers import RunningServer, free_endpoint, serve
 
 from clients.connect import ConnectConfig, Transport
-from clients.recordings import read_scan
 from clients.sectorizer import split_scan
+from model.data.readers import read_scan
 from model.stream import StreamingDetector
 from server.zenoh_transport import ZenohConfig, open_session
 

@@ -16,11 +16,10 @@ from server_helpers import default_detector
 from typer.testing import CliRunner
 
 from clients.connect import Transport
-from clients.labels import kitti_labels_for, nuscenes_labels_for
 from clients.predictions import read_predictions, scan_predictions
-from clients.recordings import find_scans, read_scan, write_native_scan
 from clients.replay import ReplayConfig, replay
-from clients.sectorizer import Spin
+from model.data.labels import kitti_labels_for, nuscenes_labels_for
+from model.data.readers import Spin, find_scans, read_scan, write_native_scan
 from server.cli import app
 
 NUSCENES = (

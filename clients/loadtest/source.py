@@ -10,8 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from clients.loadtest.config import SourceConfig
-from clients.recordings import find_scans, read_scan
 from clients.sectorizer import MODEL_FIELDS, Spin, split_scan
+from model.data.readers import find_scans, read_scan
 
 Turn = list[tuple[int, np.ndarray]]  # (sector_index, (N, 4) float32) in sweep order
 

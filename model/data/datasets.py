@@ -1,0 +1,105 @@
+"""Data sets named by a spec string, for the training and evaluation command lines.
+
+  sim             the LiDAR simulator: an endless stream of scans (`model.data.sources.SimSource`; the
+                  commands' --seed picks the stream)
+  kitti:DIR       a KITTI object `training` root: DIR/velodyne/*.bin with DIR/label_2 and DIR/calib
+  nuscenes:DIR    a folder of nuScenes LIDAR_TOP *.pcd.bin sweeps, each with NAME_boxes.txt beside it
+  native:DIR      a folder of native .npz scans (ground truth optional, see docs/data.md)
+
+`iter_labeled(spec)` yields `LabeledScan`s in file-name order (model.data.readers.read_labeled);
+`list_scan_paths(parse_data_spec(spec))` lists a folder spec's scan files.
+"""
+
+from __future__ import annotations
+
+import enum
+import itertools
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from model.data.readers import DEFAULT_SECTORS, read_labeled
+from model.data.types import LabeledScan
+
+SPEC_HELP = "sim, kitti:DIR, nuscenes:DIR or native:DIR"
+
+
+class DataKind(enum.StrEnum):
+    SIM = "sim"
+    KITTI = "kitti"
+    NUSCENES = "nuscenes"
+    NATIVE = "native"
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    kind: DataKind
+    path: Path | None = None  # the folder (kitti, nuscenes, native); None for sim
+
+    def __str__(self) -> str:
+        if self.kind is DataKind.SIM:
+            return "sim"
+        return f"{self.kind.value}:{self.path}"
+
+
+def parse_data_spec(spec: str) -> DataSpec:
+    """'sim', 'kitti:DIR', 'nuscenes:DIR', 'native:DIR' -> DataSpec; ValueError otherwise.
+
+    Only the syntax is checked here; `iter_labeled` checks that the folder holds what the kind needs.
+    """
+    kind_text, sep, rest = spec.strip().partition(":")
+    try:
+        kind = DataKind(kind_text.lower())
+    except ValueError:
+        raise ValueError(f"data spec {spec!r}: unknown kind {kind_text!r}; expected {SPEC_HELP}") from None
+    if kind is DataKind.SIM:
+        if sep:
+            raise ValueError(f"data spec {spec!r}: sim takes no argument (pick the stream with --seed)")
+        return DataSpec(DataKind.SIM)
+    if not rest.strip():
+        raise ValueError(
+            f"data spec {spec!r}: {kind.value} needs a folder ({kind.value}:DIR); expected {SPEC_HELP}"
+        )
+    return DataSpec(kind, path=Path(rest.strip()).expanduser())
+
+
+def list_scan_paths(spec: DataSpec) -> list[Path]:
+    """The scan files a folder spec names, in file-name order; FileNotFoundError naming the spec and what
+    the folder should hold when it does not."""
+    if spec.kind is DataKind.SIM or spec.path is None:
+        raise ValueError(f"data spec {spec}: not a folder spec")
+    root = spec.path
+    if not root.is_dir():
+        raise FileNotFoundError(f"data spec {spec}: {root} is not a folder")
+    if spec.kind is DataKind.KITTI:
+        missing = [d for d in ("velodyne", "label_2", "calib") if not (root / d).is_dir()]
+        if missing:
+            raise FileNotFoundError(
+                f"data spec {spec}: {root} lacks {missing}; expected a KITTI training root with "
+                "velodyne/, label_2/ and calib/"
+            )
+        files = sorted((root / "velodyne").glob("*.bin"))
+        wanted = "velodyne/*.bin"
+    elif spec.kind is DataKind.NUSCENES:
+        files = sorted(root.glob("*.pcd.bin"))
+        wanted = "*.pcd.bin sweeps (with NAME_boxes.txt beside each)"
+    else:
+        files = sorted(root.glob("*.npz"))
+        wanted = "*.npz native scans"
+    if not files:
+        raise FileNotFoundError(f"data spec {spec}: no {wanted} in {root}")
+    return files
+
+
+def iter_labeled(
+    spec: str | DataSpec, sectors: int = DEFAULT_SECTORS, seed: int = 0
+) -> Iterator[LabeledScan]:
+    """The labelled scans of a data set, in order (the simulator: endless, scans of stream `seed`)."""
+    parsed = parse_data_spec(spec) if isinstance(spec, str) else spec
+    if parsed.kind is DataKind.SIM:
+        from model.data.sources import SimSource  # the simulator is only imported when asked for
+
+        source = SimSource(seed)
+        return (source(i) for i in itertools.count())
+    files = list_scan_paths(parsed)  # checked now, before the first scan is asked for
+    return (read_labeled(path, sectors) for path in files)

@@ -1,0 +1,232 @@
+"""Targets: VEHICLE (body + cabin + axles, or one box for trucks and buses), PEDESTRIAN (legs, torso, head),
+CYCLIST (bicycle + rider). Candidates are drawn densely along lanes and sidewalks, then a configured number is
+kept inside the placement radius (and a few beyond it), skipping any that would overlap what is placed.
+
+A label box is (x, y, z, l, w, h, yaw) with z the box centre; the solids of an object lie inside its box.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from model.data.sim import stats
+from model.data.sim.clutter import sidewalk_spot
+from model.data.sim.ground import Ground
+from model.data.sim.layout import Occupancy, Road, crossing_span, footprint
+from model.data.sim.raycast import SolidList
+
+PAINT = np.array([0.06, 0.12, 0.25, 0.35, 0.5, 0.7])  # car paint reflectivities: black .. white
+
+
+@dataclass(frozen=True)
+class Candidates:
+    boxes: np.ndarray  # (K, 7) label boxes
+    large: np.ndarray  # (K,) bool: a truck or bus (vehicles only)
+
+
+def _lanes(road: Road) -> list[tuple[float, float, bool]]:
+    """(lateral offset, heading, parked) of every lane of a road."""
+    lanes = []
+    for k in range(road.lanes):
+        lanes.append((-(k + 0.5) * road.lane_width, road.yaw, False))
+        lanes.append(((k + 0.5) * road.lane_width, road.yaw + math.pi, False))
+    for side, parked in zip((-1, 1), road.parking, strict=True):
+        if parked:
+            lateral = side * (road.lanes * road.lane_width + road.parking_width / 2)
+            lanes.append((lateral, road.yaw + (0.0 if side < 0 else math.pi), True))
+    return lanes
+
+
+def vehicle_candidates(
+    rng: np.random.Generator, roads: list[Road], ground: Ground, reach: float
+) -> Candidates:
+    """Queues of vehicles filling every lane of every road (parked queues tight, moving ones looser)."""
+    boxes, large = [], []
+    for i, road in enumerate(roads):
+        others = [r for j, r in enumerate(roads) if j != i]
+        for lateral, heading, parked in _lanes(road):
+            n = int(2 * reach / 3.5) + 1
+            big = rng.random(n) < stats.LARGE_VEHICLE_FRACTION
+            size = np.where(big[:, None], stats.LARGE_VEHICLE.draw(rng, n), stats.CAR.draw(rng, n))  # (n, 3)
+            room = road.parking_width + 0.3 if parked else road.lane_width - 0.3
+            size[:, 1] = np.minimum(size[:, 1], room)
+            gap = rng.uniform(*(stats.PARKED_GAP_M if parked else stats.MOVING_GAP_M), n)
+            s = -reach + rng.uniform(0, 5) + np.cumsum(size[:, 0] + gap) - size[:, 0] / 2  # (n,) centres
+            xy = road.point(s, np.full(n, lateral))  # (n, 2)
+            yaw = heading + rng.normal(0, 0.05 if parked else 0.03, n)
+            corners = footprint(xy, size[:, 0], size[:, 1], yaw)  # (n, 4, 2)
+            margin = 5.0 if parked else 0.0  # no parking near a crossing; cross traffic waits outside it
+            keep = (s < reach) & ~np.any(
+                [o.overlaps(corners, margin) for o in others] or [np.zeros(n, bool)], 0
+            )
+            z = ground.height_at(xy[:, 0], xy[:, 1]) + size[:, 2] / 2
+            boxes.append(np.column_stack([xy, z, size, yaw])[keep])
+            large.append(big[keep])
+    return Candidates(np.concatenate(boxes), np.concatenate(large))
+
+
+def _crossing(
+    rng: np.random.Generator, roads: list[Road], ground: Ground, reach: float
+) -> tuple[np.ndarray, float, float, float]:
+    """A pedestrian crossing a road: at the crosswalk by the other road if there is one, else anywhere.
+    Returns position (2,), ground z, heading, and the direction in which a group lines up."""
+    i = int(rng.integers(len(roads)))
+    road = roads[i]
+    s = rng.uniform(-reach, reach)
+    if len(roads) > 1:  # crosswalks just outside the crossing
+        gap = crossing_span(road, roads[1 - i], 2.5)
+        s = gap[int(rng.integers(2))] + rng.uniform(-1.5, 1.5)
+    xy = road.point(np.array([s]), np.array([rng.uniform(road.edge(-1), road.edge(1))]))
+    heading = road.yaw + math.pi / 2 + (math.pi if rng.random() < 0.5 else 0.0)
+    return xy[0], float(ground.height_at(xy[:, 0], xy[:, 1])[0]), heading, road.yaw
+
+
+def pedestrian_candidates(
+    rng: np.random.Generator, roads: list[Road], ground: Ground, reach: float, n: int
+) -> Candidates:
+    """`n` tries: walkers and standing groups of 1-3 on the sidewalks, about one in ten crossing a road."""
+    boxes = []
+    for _ in range(n):
+        size = stats.PEDESTRIAN.draw(rng, 3)  # (3, 3)
+        if rng.random() < 0.1:
+            xy, base, heading, line_up = _crossing(rng, roads, ground, reach)
+        else:
+            spot = sidewalk_spot(rng, roads, ground, reach, (0.1, 0.9))
+            if spot is None:
+                continue
+            xy, base, line_up = spot.xy, spot.z, spot.yaw
+            heading = spot.yaw + (math.pi if rng.random() < 0.5 else 0.0)
+            heading = heading if rng.random() < 0.8 else rng.uniform(-math.pi, math.pi)  # standing
+        members = int(rng.choice([1, 2, 3], p=[0.6, 0.3, 0.1]))
+        step = stats.GROUP_SPACING_M * np.array([math.cos(line_up), math.sin(line_up)])
+        for m in range(members):
+            c = xy + step * m
+            yaw = heading + rng.normal(0, 0.15)
+            boxes.append([c[0], c[1], base + size[m, 2] / 2, *size[m], yaw])
+    boxes_arr = np.asarray(boxes, np.float64).reshape(-1, 7)
+    return Candidates(boxes_arr, np.zeros(len(boxes_arr), bool))
+
+
+def cyclist_candidates(
+    rng: np.random.Generator, roads: list[Road], ground: Ground, reach: float, n: int
+) -> Candidates:
+    """`n` tries: riders near the right edge of the outer lanes, one in four on a sidewalk."""
+    boxes = []
+    for _ in range(n):
+        size = stats.CYCLIST.draw(rng, 1)[0]  # (3,)
+        if rng.random() < 0.25:
+            spot = sidewalk_spot(rng, roads, ground, reach, (0.2, 0.8))
+            if spot is None:
+                continue
+            xy, base, heading = spot.xy, spot.z, spot.yaw + (math.pi if rng.random() < 0.5 else 0.0)
+        else:
+            road = roads[int(rng.integers(len(roads)))]
+            side = int(rng.choice([-1, 1]))  # forward lanes on the right, oncoming on the left
+            lateral = side * (road.lanes * road.lane_width - rng.uniform(0.6, 1.0))
+            xy = road.point(np.array([rng.uniform(-reach, reach)]), np.array([lateral]))[0]
+            base = float(ground.height_at(xy[None, 0], xy[None, 1])[0])
+            heading = road.yaw + (0.0 if side < 0 else math.pi)
+        boxes.append([xy[0], xy[1], base + size[2] / 2, *size, heading + rng.normal(0, 0.05)])
+    boxes_arr = np.asarray(boxes, np.float64).reshape(-1, 7)
+    return Candidates(boxes_arr, np.zeros(len(boxes_arr), bool))
+
+
+def discs(box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One box (7,) -> its footprint as 1-3 discs along the heading: centres (D, 2), radii (D,)."""
+    length, w, yaw = box[3], box[4], box[6]
+    k = 1 if length < 1.3 * w else 3
+    along = np.linspace(-(length - w) / 2, (length - w) / 2, k) if k > 1 else np.zeros(1)
+    centres = box[:2] + along[:, None] * np.array([math.cos(yaw), math.sin(yaw)])
+    r = np.full(k, math.hypot(w / 2, (length - w) / (2 * (k - 1)) if k > 1 else length / 2) + 0.05)
+    return centres, r
+
+
+def select(
+    rng: np.random.Generator,
+    cands: Candidates,
+    occ: Occupancy,
+    inside: int,
+    outside: int,
+    radius: float,
+    reach: float,
+) -> Candidates:
+    """Keep up to `inside` candidates within `radius` of the sensor and `outside` between it and `reach`,
+    in random order, skipping those that overlap anything taken; the kept ones take their place."""
+    order = rng.permutation(len(cands.boxes))
+    dist = np.hypot(cands.boxes[:, 0], cands.boxes[:, 1])
+    keep, room = [], {True: inside, False: outside}
+    for i in order:
+        near = bool(dist[i] <= radius)
+        if room[near] == 0 or dist[i] > reach:
+            continue
+        xy, r = discs(cands.boxes[i])
+        if occ.free(xy, r):
+            occ.take(xy, r)
+            keep.append(i)
+            room[near] -= 1
+    idx = np.asarray(keep, np.int64)
+    return Candidates(cands.boxes[idx], cands.large[idx])
+
+
+def _offset(boxes: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """(K, 7) boxes, (K,) metres along each heading -> (K, 2) points."""
+    return boxes[:, :2] + along[:, None] * np.stack([np.cos(boxes[:, 6]), np.sin(boxes[:, 6])], 1)
+
+
+def vehicle_solids(solids: SolidList, rng: np.random.Generator, cands: Candidates) -> None:
+    """Cars: body, a narrower cabin (glass: dark, partly see-through) and two axle blocks; trucks and buses:
+    one body box above the axles."""
+    b, k = cands.boxes, len(cands.boxes)
+    base, length, w, h, yaw = b[:, 2] - b[:, 5] / 2, b[:, 3], b[:, 4], b[:, 5], b[:, 6]
+    clear = np.where(cands.large, rng.uniform(0.4, 0.6, k), rng.uniform(0.18, 0.3, k))
+    body_top = np.where(cands.large, base + h, base + h * rng.uniform(0.5, 0.6, k))
+    paint = rng.choice(PAINT, k) * rng.uniform(0.8, 1.2, k)
+    solids.boxes(b[:, :2], base + clear, body_top, length, w, yaw, paint)
+    for sign in (-1.0, 1.0):  # axles with their wheels, seen through the gap under the body
+        axle = _offset(b, sign * (length / 2 - np.minimum(0.9, length * 0.2)))
+        solids.boxes(axle, base, base + clear + 0.05, 0.65, w * 0.96, yaw, rng.uniform(0.03, 0.08, k))
+    car = ~cands.large
+    cabin_l = length[car] * rng.uniform(0.45, 0.6, int(car.sum()))
+    centre = _offset(b[car], -length[car] * rng.uniform(0.0, 0.1, len(cabin_l)))
+    glass = rng.uniform(0.05, 0.15, len(cabin_l))
+    solids.boxes(centre, body_top[car], base[car] + h[car], cabin_l, w[car] * 0.88, yaw[car], glass, 0.25)
+
+
+def pedestrian_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray) -> None:
+    """Legs (one cylinder), torso (a box across the heading), head (a small cylinder)."""
+    k = len(boxes)
+    base, length, w, h, yaw = (
+        boxes[:, 2] - boxes[:, 5] / 2,
+        boxes[:, 3],
+        boxes[:, 4],
+        boxes[:, 5],
+        boxes[:, 6],
+    )
+    clothes = rng.uniform(0.05, 0.5, k)
+    legs = np.minimum(rng.uniform(0.13, 0.18, k), np.minimum(length, w) / 2)
+    solids.cylinders(boxes[:, :2], base, base + 0.47 * h, legs, clothes * rng.uniform(0.7, 1.0, k))
+    torso_l, torso_w = np.minimum(rng.uniform(0.22, 0.3, k), length), np.minimum(rng.uniform(0.4, 0.5, k), w)
+    solids.boxes(boxes[:, :2], base + 0.47 * h, base + 0.84 * h, torso_l, torso_w, yaw, clothes)
+    solids.cylinders(boxes[:, :2], base + 0.84 * h, base + h, 0.1, rng.uniform(0.2, 0.4, k))
+
+
+def cyclist_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray) -> None:
+    """A bicycle (thin, mostly see-through plate up to 1 m) and a rider: legs, torso, head."""
+    k = len(boxes)
+    base, length, w, h, yaw = (
+        boxes[:, 2] - boxes[:, 5] / 2,
+        boxes[:, 3],
+        boxes[:, 4],
+        boxes[:, 5],
+        boxes[:, 6],
+    )
+    solids.boxes(boxes[:, :2], base, base + 1.0, length * 0.95, 0.12, yaw, rng.uniform(0.3, 0.6, k), 0.5)
+    clothes = rng.uniform(0.05, 0.5, k)
+    solids.cylinders(boxes[:, :2], base + 0.45, base + 1.0, 0.12, clothes)
+    torso = _offset(boxes, -0.1 * length)
+    torso_w = np.minimum(rng.uniform(0.4, 0.5, k), w)
+    solids.boxes(torso, base + 1.0, base + h - 0.27, 0.35, torso_w, yaw, clothes)
+    solids.cylinders(_offset(boxes, 0.05 * length), base + h - 0.27, base + h, 0.1, rng.uniform(0.2, 0.4, k))

@@ -1,0 +1,141 @@
+"""`phim sim` (one simulated scan: a summary line and a bird's-eye-view PNG) and `phim bench sim`."""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+from model.config import CLASS_NAMES
+from model.data.sim.sensors import Sensor
+from model.data.sim.simulate import SimConfig, simulate
+from model.data.types import LEVEL_1, LEVEL_2, LabeledScan
+
+SensorOpt = Annotated[
+    list[Sensor] | None,
+    typer.Option("--sensor", help="sensor preset; repeat it to draw one of them per seed [hdl64e]"),
+]
+
+
+def _config(sensors: list[Sensor] | None) -> SimConfig:
+    if not sensors:
+        return SimConfig()
+    if len(sensors) == 1:
+        return SimConfig(sensor=sensors[0])
+    return SimConfig(sensors=tuple(sensors))
+
+
+def summary(scan: LabeledScan, seconds: float) -> str:
+    """One line: points, boxes per class, LEVEL_1 / LEVEL_2 / empty boxes, time."""
+    gt = scan.gt
+    per_class = " ".join(f"{name} {int((gt.labels == i).sum())}" for i, name in enumerate(CLASS_NAMES))
+    hit = gt.num_points > 0
+    l1, l2 = int((hit & (gt.difficulty == LEVEL_1)).sum()), int((hit & (gt.difficulty == LEVEL_2)).sum())
+    return (
+        f"{scan.name}: {len(scan.points)} points, boxes {per_class} "
+        f"(LEVEL_1 {l1}, LEVEL_2 {l2}, no points {int((~hit).sum())}), {seconds * 1e3:.0f} ms"
+    )
+
+
+def draw_scan(path: Path, scan: LabeledScan, extent_m: float = 50.0) -> Path:
+    """BEV PNG: points coloured by height, label boxes coloured by class (LEVEL_2 dashed, empty dotted)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from clients.pictures import CLASS_COLOURS, box_corners
+
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.set_facecolor("black")
+    p = scan.points
+    ax.scatter(p[:, 0], p[:, 1], c=np.clip(p[:, 2], -2.5, 2.0), s=0.3, cmap="viridis", linewidths=0)
+    gt = scan.gt
+    for corners, label, n, level in zip(
+        box_corners(gt.boxes), gt.labels, gt.num_points, gt.difficulty, strict=True
+    ):
+        ring = np.vstack([corners, corners[:1]])
+        style = ":" if n == 0 else ("--" if level == LEVEL_2 else "-")
+        ax.plot(ring[:, 0], ring[:, 1], color=CLASS_COLOURS[CLASS_NAMES[label].lower()], lw=1.0, ls=style)
+    for i, name in enumerate(CLASS_NAMES):
+        ax.plot([], [], color=CLASS_COLOURS[name.lower()], label=f"{name} {int((gt.labels == i).sum())}")
+    ax.plot([0], [0], marker="^", color="white", markersize=6)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_xlim(-extent_m, extent_m)
+    ax.set_ylim(-extent_m, extent_m)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x forward (m)")
+    ax.set_ylabel("y left (m)")
+    ax.set_title(f"{scan.name}: {len(p)} points (LEVEL_2 dashed, no points dotted)", fontsize=9)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def sim_cmd(
+    seed: Annotated[int, typer.Option(help="scene seed")] = 0,
+    sensor: SensorOpt = None,
+    png: Annotated[Path | None, typer.Option(help="write the bird's-eye view here")] = None,
+    extent: Annotated[float, typer.Option(help="half width of the picture (m)")] = 50.0,
+) -> None:
+    """Simulate one LiDAR turn through a random street scene and summarize it."""
+    from model.runtime import tune_malloc
+
+    tune_malloc()
+    start = time.perf_counter()
+    scan = simulate(seed, _config(sensor))
+    typer.echo(summary(scan, time.perf_counter() - start))
+    if png is not None:
+        typer.echo(f"wrote {draw_scan(png, scan, extent)}")
+
+
+def bench_sim_cmd(
+    seeds: Annotated[int, typer.Option(help="timed scans (seeds 1..N, after one warm-up scan)")] = 20,
+    sensor: SensorOpt = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
+) -> None:
+    """Simulator throughput, single-threaded: scans per second over N seeds."""
+    import torch
+
+    from model.runtime import tune_malloc
+
+    tune_malloc()
+    torch.set_num_threads(1)  # only the sector lookup uses torch; one process per core is the plan
+    cfg = _config(sensor)
+    simulate(0, cfg)
+    seconds, points, boxes = [], [], []
+    for seed in range(1, seeds + 1):
+        start = time.perf_counter()
+        scan = simulate(seed, cfg)
+        seconds.append(time.perf_counter() - start)
+        points.append(len(scan.points))
+        boxes.append(np.bincount(scan.gt.labels, minlength=len(CLASS_NAMES)))
+    per_class = np.mean(boxes, axis=0)
+    result = {
+        "sensor": ",".join(s.value for s in sensor) if sensor else Sensor.HDL64E.value,
+        "scans": seeds,
+        "scans_per_s": seeds / sum(seconds),
+        "mean_ms": 1e3 * statistics.fmean(seconds),
+        "p50_ms": 1e3 * statistics.median(seconds),
+        "max_ms": 1e3 * max(seconds),
+        "mean_points": statistics.fmean(points),
+        **{f"mean_{name.lower()}": float(per_class[i]) for i, name in enumerate(CLASS_NAMES)},
+    }
+    if as_json:
+        typer.echo(json.dumps(result))
+        return
+    for key, value in result.items():
+        typer.echo(f"{key:>18}  {value:.1f}" if isinstance(value, float) else f"{key:>18}  {value}")
+
+
+def register(app: typer.Typer) -> None:
+    """Adds `phim sim`; `bench_sim_cmd` goes under `phim bench sim`."""
+    app.command("sim")(sim_cmd)

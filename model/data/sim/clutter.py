@@ -1,0 +1,145 @@
+"""Static street furniture and vegetation on the sidewalks. Several pieces are the size of a pedestrian or
+a parked bicycle (bins, bushes, bollards, sign boards, bicycles without a rider): hard negatives."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from model.data.sim.ground import Ground
+from model.data.sim.layout import Occupancy, Road
+from model.data.sim.raycast import SolidList
+
+
+@dataclass(frozen=True)
+class Spot:
+    """A place on a sidewalk."""
+
+    xy: np.ndarray  # (2,)
+    z: float  # sidewalk top
+    yaw: float  # the road's heading there
+    road: int
+    side: int  # -1 right, +1 left of the road
+
+
+def sidewalk_spot(
+    rng: np.random.Generator,
+    roads: list[Road],
+    ground: Ground,
+    reach: float,
+    band: tuple[float, float],
+) -> Spot | None:
+    """A random spot on a sidewalk within `reach` of the sensor, at a lateral fraction `band` of its width
+    (0 curb, 1 building line); None when it lands on another road."""
+    i = int(rng.integers(len(roads)))
+    road, side = roads[i], int(rng.choice([-1, 1]))
+    s = rng.uniform(-reach, reach)
+    lateral = road.edge(side) + side * (0.3 + rng.uniform(*band) * (road.sidewalk - 0.6))
+    xy = road.point(np.array([s]), np.array([lateral]))  # (1, 2)
+    if any(o.overlaps(xy, margin=0.5)[0] for j, o in enumerate(roads) if j != i):
+        return None
+    z = float(ground.height_at(xy[:, 0], xy[:, 1])[0]) + road.curb
+    return Spot(xy[0], z, road.yaw, i, side)
+
+
+def _pole(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+    r = rng.uniform(0.1, 0.2)
+    solids.cylinders(spot.xy, spot.z - 0.2, spot.z + rng.uniform(5, 9), r, rng.uniform(0.3, 0.5))
+    return r
+
+
+def _sign(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+    top = spot.z + rng.uniform(2.0, 2.8)
+    size = rng.uniform(0.6, 0.9)
+    solids.cylinders(spot.xy, spot.z - 0.2, top, 0.04, 0.4)
+    solids.boxes(spot.xy, top, top + size, 0.05, size, spot.yaw, 0.9)  # retroreflective plate facing traffic
+    return size / 2
+
+
+def _tree(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+    crown_base = spot.z + rng.uniform(2.0, 3.5)
+    solids.cylinders(spot.xy, spot.z - 0.2, crown_base + 0.5, rng.uniform(0.12, 0.3), rng.uniform(0.2, 0.35))
+    crown = rng.uniform(1.2, 3.0)
+    top = crown_base + rng.uniform(2.5, 6.0)
+    solids.cylinders(spot.xy, crown_base, top, crown, rng.uniform(0.35, 0.65), porosity=0.45)
+    return 0.4
+
+
+def _hydrant(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+    solids.cylinders(spot.xy, spot.z - 0.1, spot.z + rng.uniform(0.6, 0.8), 0.15, 0.45)
+    return 0.2
+
+
+def _bollard(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+    solids.cylinders(spot.xy, spot.z - 0.1, spot.z + rng.uniform(0.9, 1.1), 0.1, rng.uniform(0.3, 0.8))
+    return 0.15
+
+
+def _bin(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+    length, width = rng.uniform(0.5, 0.8, 2)
+    yaw = spot.yaw + rng.uniform(-0.3, 0.3)
+    solids.boxes(
+        spot.xy, spot.z - 0.05, spot.z + rng.uniform(0.9, 1.3), length, width, yaw, rng.uniform(0.1, 0.4)
+    )
+    return 0.5
+
+
+def _bush(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+    r = rng.uniform(0.3, 0.9)
+    solids.cylinders(spot.xy, spot.z - 0.1, spot.z + rng.uniform(0.5, 1.6), r, rng.uniform(0.35, 0.6), 0.3)
+    return r
+
+
+def _board(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+    """A sign board, mailbox or parking meter: a pedestrian-sized box."""
+    yaw = spot.yaw + rng.uniform(-math.pi, math.pi)
+    length, width = rng.uniform(0.3, 0.6), rng.uniform(0.4, 0.7)
+    solids.boxes(
+        spot.xy, spot.z - 0.05, spot.z + rng.uniform(1.0, 1.5), length, width, yaw, rng.uniform(0.2, 0.7)
+    )
+    return 0.45
+
+
+def _bicycle(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+    """A parked bicycle without a rider (not a CYCLIST target)."""
+    yaw = spot.yaw + (math.pi / 2 if rng.random() < 0.5 else 0.0)
+    solids.boxes(spot.xy, spot.z, spot.z + 1.0, rng.uniform(1.6, 1.9), 0.12, yaw, rng.uniform(0.3, 0.6), 0.5)
+    return 1.0
+
+
+# (name, placement band across the sidewalk, relative frequency, builder returning its footprint radius)
+KINDS: tuple[tuple[str, tuple[float, float], float, Callable[..., float]], ...] = (
+    ("pole", (0.0, 0.1), 0.15, _pole),
+    ("sign", (0.0, 0.1), 0.10, _sign),
+    ("tree", (0.0, 0.15), 0.15, _tree),
+    ("hydrant", (0.0, 0.15), 0.05, _hydrant),
+    ("bollard", (0.0, 0.2), 0.08, _bollard),
+    ("bin", (0.6, 1.0), 0.12, _bin),
+    ("bush", (0.7, 1.0), 0.15, _bush),
+    ("board", (0.3, 1.0), 0.10, _board),
+    ("bicycle", (0.7, 1.0), 0.10, _bicycle),
+)
+
+
+def clutter(
+    solids: SolidList,
+    occ: Occupancy,
+    rng: np.random.Generator,
+    roads: list[Road],
+    ground: Ground,
+    count: int,
+    reach: float,
+) -> None:
+    """`count` tries at placing random furniture on the sidewalks (overlapping tries are skipped)."""
+    weights = np.array([k[2] for k in KINDS])
+    picks = rng.choice(len(KINDS), size=count, p=weights / weights.sum())
+    for k in picks:
+        _, band, _, build = KINDS[k]
+        spot = sidewalk_spot(rng, roads, ground, reach, band)
+        if spot is None or not occ.free(spot.xy[None], np.array([0.5])):
+            continue
+        r = build(solids, rng, spot)
+        occ.take(spot.xy, np.array([r]))

@@ -1,0 +1,231 @@
+"""Vectorized ray casting of a spinning LiDAR through solids (yawed boxes, vertical cylinders).
+
+All rays start at the sensor (the origin). Ray (f, b) is firing f at azimuth -pi + (f + 0.5) * 2pi / F and
+beam b at elevation `elevations[b]` (descending); its index is f * B + b, which is firing order. Each solid
+is culled to the firings inside its azimuth span and the beams inside its elevation span, so only those
+ray/solid pairs are tested (no Python loop over rays or solids).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+BOX, CYLINDER = 0, 1
+
+
+@dataclass(frozen=True)
+class Solids:
+    """Vertical prisms in the sensor frame: boxes rotated about z, and vertical cylinders."""
+
+    kind: np.ndarray  # (P,) int8 BOX or CYLINDER
+    centre: np.ndarray  # (P, 2) float64 x, y
+    z: np.ndarray  # (P, 2) float64 bottom, top
+    half: np.ndarray  # (P, 2) float64 box: half length, half width; cylinder: radius, radius
+    yaw: np.ndarray  # (P,) float64 box heading (cylinder: 0)
+    reflectivity: np.ndarray  # (P,) float64 in [0, 1]
+    porosity: np.ndarray  # (P,) float64 chance that a ray passes through (foliage, spokes, glass)
+
+    def __len__(self) -> int:
+        return int(self.kind.shape[0])
+
+    def select(self, keep: np.ndarray) -> Solids:
+        return Solids(*(getattr(self, f.name)[keep] for f in fields(self)))
+
+
+@dataclass(frozen=True)
+class Rays:
+    """The firing pattern of one turn: F firings x B beams."""
+
+    azimuth: np.ndarray  # (F,) float64, increasing from -pi
+    elevation: np.ndarray  # (B,) float64 radians, descending
+
+    @staticmethod
+    def spinning(firings: int, elevations_deg: np.ndarray) -> Rays:
+        az = -math.pi + (np.arange(firings) + 0.5) * (2 * math.pi / firings)
+        return Rays(az, np.radians(np.asarray(elevations_deg, np.float64)))
+
+    @property
+    def count(self) -> int:
+        return len(self.azimuth) * len(self.elevation)
+
+    def directions(self, f: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(Q,) firing and beam indices -> unit directions dx, dy, dz, each (Q,) float32."""
+        ce, se = np.cos(self.elevation).astype(np.float32), np.sin(self.elevation).astype(np.float32)
+        ca, sa = np.cos(self.azimuth).astype(np.float32), np.sin(self.azimuth).astype(np.float32)
+        return ce[b] * ca[f], ce[b] * sa[f], se[b]
+
+
+@dataclass(frozen=True)
+class Hits:
+    """The nearest solid hit of some rays."""
+
+    ray: np.ndarray  # (H,) int64 ray index f * B + b
+    t: np.ndarray  # (H,) float32 range (metres)
+    cos: np.ndarray  # (H,) float32 |cos| of the incidence angle
+    solid: np.ndarray  # (H,) int64 index into the Solids
+
+
+def _box_footprint(s: Solids) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Box solids -> azimuth half-open span (lo, hi) around the centre direction, rho_min, rho_max."""
+    c, sn = np.cos(s.yaw), np.sin(s.yaw)  # (P,)
+    signs = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], np.float64)  # (4, 2)
+    lx, ly = signs[None, :, 0] * s.half[:, None, 0], signs[None, :, 1] * s.half[:, None, 1]  # (P, 4)
+    cx = s.centre[:, None, 0] + lx * c[:, None] - ly * sn[:, None]  # (P, 4) corners
+    cy = s.centre[:, None, 1] + lx * sn[:, None] + ly * c[:, None]
+    mid = np.arctan2(s.centre[:, 1], s.centre[:, 0])  # (P,)
+    rel = np.angle(np.exp(1j * (np.arctan2(cy, cx) - mid[:, None])))  # (P, 4) in (-pi, pi]
+    ox = -(s.centre[:, 0] * c + s.centre[:, 1] * sn)  # sensor in the box frame
+    oy = s.centre[:, 0] * sn - s.centre[:, 1] * c
+    gap = np.maximum(np.abs(np.stack([ox, oy], 1)) - s.half, 0.0)  # (P, 2)
+    rho_min = np.hypot(gap[:, 0], gap[:, 1])
+    rho_max = np.hypot(cx, cy).max(axis=1)
+    return mid + rel.min(axis=1), mid + rel.max(axis=1), rho_min, rho_max
+
+
+def _spans(s: Solids) -> tuple[np.ndarray, ...]:
+    """(P,) azimuth lo, hi (radians, lo may be < -pi, hi > pi), elevation lo, hi (radians)."""
+    box = s.kind == BOX
+    az_lo, az_hi, rho_min, rho_max = _box_footprint(s)
+    dist = np.hypot(s.centre[:, 0], s.centre[:, 1])  # cylinders
+    mid = np.arctan2(s.centre[:, 1], s.centre[:, 0])
+    half = np.arcsin(np.clip(s.half[:, 0] / np.maximum(dist, 1e-9), 0.0, 1.0))
+    az_lo, az_hi = np.where(box, az_lo, mid - half), np.where(box, az_hi, mid + half)
+    rho_min = np.where(box, rho_min, np.maximum(dist - s.half[:, 0], 0.0))
+    rho_max = np.where(box, rho_max, dist + s.half[:, 0])
+    around = rho_min <= 1e-9  # the sensor is inside the footprint: every azimuth
+    az_lo, az_hi = np.where(around, -math.pi, az_lo), np.where(around, math.pi, az_hi)
+    z0, z1 = s.z[:, 0], s.z[:, 1]
+    el_hi = np.arctan2(z1, np.where(z1 > 0, rho_min, rho_max))
+    el_lo = np.arctan2(z0, np.where(z0 < 0, rho_min, rho_max))
+    return az_lo, az_hi, el_lo, el_hi
+
+
+def ray_pairs(s: Solids, rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate pairs: (Q,) solid index, firing index, beam index (firings and beams in the solid's span)."""
+    firings = len(rays.azimuth)
+    az_lo, az_hi, el_lo, el_hi = _spans(s)
+    step = 2 * math.pi / firings
+    f0 = np.ceil((az_lo + math.pi) / step - 0.5 - 1e-9).astype(np.int64)  # (P,)
+    f1 = np.floor((az_hi + math.pi) / step - 0.5 + 1e-9).astype(np.int64)
+    nf = np.clip(f1 - f0 + 1, 0, firings)
+    neg = -rays.elevation  # ascending
+    b0 = np.searchsorted(neg, -el_hi - 1e-9, side="left")
+    nb = np.searchsorted(neg, -el_lo + 1e-9, side="right") - b0
+    counts = nf * np.maximum(nb, 0)  # (P,)
+    solid = np.repeat(np.arange(len(s)), counts)  # (Q,)
+    local = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)  # (Q,)
+    nbq = nb[solid]
+    f = (f0[solid] + local // nbq) % firings
+    b = b0[solid] + local % nbq
+    return solid, f, b
+
+
+def _box_walls(
+    s: Solids, solid: np.ndarray, dx: np.ndarray, dy: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Box pairs: entry, exit (Q,) of each ray through the footprint, |cos| (Q,) against the entry wall."""
+    cx, cy = s.centre[solid, 0].astype(np.float32), s.centre[solid, 1].astype(np.float32)  # (Q,)
+    hl, hw = s.half[solid, 0].astype(np.float32), s.half[solid, 1].astype(np.float32)
+    c, sn = np.cos(s.yaw[solid]).astype(np.float32), np.sin(s.yaw[solid]).astype(np.float32)
+    lx, ly = dx * c + dy * sn, -dx * sn + dy * c  # direction in the box frame
+    ox, oy = -(cx * c + cy * sn), cx * sn - cy * c  # sensor in the box frame
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ix = 1 / np.where(np.abs(lx) < 1e-12, np.float32(1e-12), lx)
+        iy = 1 / np.where(np.abs(ly) < 1e-12, np.float32(1e-12), ly)
+        tx0, tx1 = (-hl - ox) * ix, (hl - ox) * ix
+        ty0, ty1 = (-hw - oy) * iy, (hw - oy) * iy
+    txn, tyn = np.minimum(tx0, tx1), np.minimum(ty0, ty1)
+    t_out = np.minimum(np.maximum(tx0, tx1), np.maximum(ty0, ty1))
+    return np.maximum(txn, tyn), t_out, np.where(txn >= tyn, np.abs(lx), np.abs(ly))
+
+
+def _cylinder_wall(
+    s: Solids, solid: np.ndarray, dx: np.ndarray, dy: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cylinder pairs: entry, exit (Q,) of each ray through the disc |t d - c| <= r, |cos| (Q,) at entry."""
+    cx, cy = s.centre[solid, 0].astype(np.float32), s.centre[solid, 1].astype(np.float32)  # (Q,)
+    r = s.half[solid, 0].astype(np.float32)
+    a = dx * dx + dy * dy
+    b = dx * cx + dy * cy
+    disc = b * b - a * (cx * cx + cy * cy - r * r)
+    root = np.sqrt(np.maximum(disc, 0))
+    t_in = np.where(disc >= 0, (b - root) / a, np.inf).astype(np.float32)
+    t_out = np.where(disc >= 0, (b + root) / a, -np.inf).astype(np.float32)
+    with np.errstate(invalid="ignore"):  # rays that miss: inf - inf
+        cos = np.abs((t_in * dx - cx) * dx + (t_in * dy - cy) * dy) / r
+    return t_in, t_out, np.nan_to_num(cos, nan=0.0, posinf=0.0)
+
+
+def _horizontal(
+    s: Solids, solid: np.ndarray, dx: np.ndarray, dy: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Entry, exit (Q,) of each ray through its solid's footprint, and |cos| (Q,) against the entry wall."""
+    t_in, t_out, cos = (np.empty(len(solid), np.float32) for _ in range(3))
+    box = s.kind[solid] == BOX
+    for sel, walls in ((box, _box_walls), (~box, _cylinder_wall)):
+        i = np.flatnonzero(sel)
+        t_in[i], t_out[i], cos[i] = walls(s, solid[i], dx[i], dy[i])
+    return t_in, t_out, cos
+
+
+def cast_solids(s: Solids, rays: Rays, range_min: float, rng: np.random.Generator) -> Hits:
+    """The nearest hit of every ray that hits a solid (porous solids let rays through at random)."""
+    solid, f, b = ray_pairs(s, rays)
+    dx, dy, dz = rays.directions(f, b)  # (Q,) each
+    t_in, t_out, cos = _horizontal(s, solid, dx, dy)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        iz = 1 / np.where(np.abs(dz) < 1e-12, np.float32(1e-12), dz)
+        tz0, tz1 = s.z[solid, 0].astype(np.float32) * iz, s.z[solid, 1].astype(np.float32) * iz
+    tzn, tzf = np.minimum(tz0, tz1), np.maximum(tz0, tz1)
+    cos = np.where(tzn > t_in, np.abs(dz), cos)
+    t_in, t_out = np.maximum(t_in, tzn), np.minimum(t_out, tzf)
+    hit = (t_in <= t_out) & (t_in >= range_min)
+    porous = s.porosity[solid[hit]]
+    keep = np.flatnonzero(hit)[rng.random(len(porous)) >= porous]  # (H0,)
+    ray = f[keep] * len(rays.elevation) + b[keep]
+    return nearest(ray, t_in[keep], cos[keep], solid[keep], rays.count)
+
+
+def nearest(ray: np.ndarray, t: np.ndarray, cos: np.ndarray, solid: np.ndarray, n_rays: int) -> Hits:
+    """Keep each ray's nearest hit among many: (H0,) arrays -> Hits, one per ray, sorted by ray."""
+    best = np.full(n_rays, np.inf, np.float32)
+    np.minimum.at(best, ray, t)
+    winner = np.full(n_rays, -1, np.int64)
+    first = np.flatnonzero(t == best[ray])
+    winner[ray[first[::-1]]] = first[::-1]  # ties: the first listed hit wins
+    rays_hit = np.flatnonzero(winner >= 0)
+    w = winner[rays_hit]
+    return Hits(rays_hit, t[w], cos[w], solid[w])
+
+
+class SolidList:
+    """Collects solids in batches (arrays broadcast to one length per call), then builds `Solids`."""
+
+    def __init__(self) -> None:
+        self._parts: list[tuple[np.ndarray, ...]] = []
+
+    def _add(self, kind: int, centre, z0, z1, half_l, half_w, yaw, refl, porosity) -> None:
+        centre = np.asarray(centre, np.float64).reshape(-1, 2)  # (K, 2)
+        n = len(centre)
+        cols = [np.broadcast_to(np.asarray(a, np.float64), (n,)) for a in (z0, z1, half_l, half_w, yaw)]
+        refl, porosity = (np.broadcast_to(np.asarray(a, np.float64), (n,)) for a in (refl, porosity))
+        kinds = np.full(n, kind, np.int8)
+        z = np.stack(cols[:2], 1)  # (K, 2)
+        self._parts.append((kinds, centre, z, np.stack(cols[2:4], 1), cols[4], refl, porosity))
+
+    def boxes(self, centre, z0, z1, length, width, yaw, refl, porosity=0.0) -> None:
+        """(K, 2) centres; z0, z1, length, width, yaw, refl, porosity scalars or (K,)."""
+        self._add(BOX, centre, z0, z1, np.asarray(length) / 2, np.asarray(width) / 2, yaw, refl, porosity)
+
+    def cylinders(self, centre, z0, z1, radius, refl, porosity=0.0) -> None:
+        """(K, 2) centres; z0, z1, radius, refl, porosity scalars or (K,)."""
+        self._add(CYLINDER, centre, z0, z1, radius, radius, 0.0, refl, porosity)
+
+    def build(self) -> Solids:
+        if not self._parts:
+            empty2 = np.zeros((0, 2))
+            return Solids(np.zeros(0, np.int8), empty2, empty2, empty2, *(np.zeros(0) for _ in range(3)))
+        return Solids(*(np.concatenate(cols) for cols in zip(*self._parts, strict=True)))

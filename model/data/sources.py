@@ -1,0 +1,66 @@
+"""Scan sources by index, for training and evaluation: `source(i) -> LabeledScan`.
+
+- `sim`: scan i of stream `seed` is `simulate(sim_seed(seed, i))`, an endless, reproducible stream. Training
+  uses stream 0 by default and evaluation stream 7, so held-out scans are never trained on.
+- recorded data (`kitti:DIR`, `nuscenes:DIR`, `native:DIR`): the folder's scans, cycled; training visits
+  them in a fresh random order every pass (seeded), evaluation in file order.
+Sources are plain picklable objects, so data-loader worker processes can build scans themselves.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
+from model.data.readers import read_labeled
+from model.data.sim import SimConfig, simulate
+from model.data.types import LabeledScan
+
+
+def sim_seed(stream: int, index: int) -> int:
+    """The simulator seed of scan `index` of stream `stream` (distinct streams never share a scan)."""
+    return int(np.random.SeedSequence([stream, index]).generate_state(1)[0])
+
+
+@dataclass(frozen=True)
+class SimSource:
+    stream: int
+    cfg: SimConfig = field(default_factory=SimConfig)
+
+    def __call__(self, index: int) -> LabeledScan:
+        scan = simulate(sim_seed(self.stream, index), self.cfg)
+        return dataclasses.replace(scan, name=f"sim-{self.stream}-{index:06d}")
+
+    def __len__(self) -> int:
+        return 1 << 62
+
+
+@dataclass(frozen=True)
+class FileSource:
+    paths: tuple[Path, ...]
+    shuffle_seed: int | None = None  # None: file order
+
+    def __call__(self, index: int) -> LabeledScan:
+        n = len(self.paths)
+        epoch, k = divmod(index, n)
+        if self.shuffle_seed is not None:
+            k = int(np.random.default_rng([self.shuffle_seed, epoch]).permutation(n)[k])
+        return read_labeled(self.paths[k])
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+
+def scan_source(spec: str, seed: int, shuffle: bool = True) -> SimSource | FileSource:
+    """A data spec (`sim`, `kitti:DIR`, ...) -> its source; `seed` picks the sim stream or the shuffling."""
+    parsed = parse_data_spec(spec)
+    if parsed.kind is DataKind.SIM:
+        return SimSource(seed)
+    paths = tuple(list_scan_paths(parsed))
+    if not paths:
+        raise ValueError(f"data {spec!r}: no scans found")
+    return FileSource(paths, seed if shuffle else None)

@@ -1,0 +1,1 @@
+"""Evaluation: Waymo-style detection metrics (AP and APH per class and difficulty level)."""

@@ -1,0 +1,1 @@
+"""Training: targets, losses, the streaming training step and loop (`phim train`)."""

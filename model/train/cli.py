@@ -1,0 +1,113 @@
+"""`phim train` and `phim eval`."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from model.config import CONFIGS
+
+log = logging.getLogger("phim.train")
+
+DataOpt = Annotated[str, typer.Option("--data", help="sim, kitti:DIR, nuscenes:DIR or native:DIR")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="auto (cuda if present), cpu, cuda, cuda:1")]
+
+
+def train_cmd(
+    out: Annotated[Path, typer.Option("--out", help="run directory (checkpoints, metrics.csv)")],
+    config: Annotated[str, typer.Option("--config", help=f"model config: {', '.join(CONFIGS)}")] = "tiny",
+    data: DataOpt = "sim",
+    steps: Annotated[int, typer.Option(help="optimizer steps (the one-cycle schedule spans them)")] = 6000,
+    batch_size: Annotated[int, typer.Option(help="scans per step and process")] = 1,
+    lr: Annotated[float, typer.Option(help="peak learning rate of the one-cycle schedule")] = 3e-3,
+    seed: Annotated[int, typer.Option(help="sim stream and augmentation seed (eval uses 7)")] = 0,
+    workers: Annotated[int, typer.Option(help="data-loader processes per training process")] = 1,
+    checkpoint_every: Annotated[int, typer.Option(help="steps between checkpoints")] = 200,
+    log_every: Annotated[int, typer.Option(help="steps between metrics.csv rows")] = 10,
+    resume: Annotated[bool, typer.Option("--resume", help="continue the run in --out")] = False,
+    device: DeviceOpt = "auto",
+    threads: Annotated[int, typer.Option(help="torch CPU threads (0: torch's default)")] = 0,
+    progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
+) -> None:
+    """Train a model (streaming, as the paper trains); torchrun runs the same command with DDP."""
+    import torch
+
+    from model.runtime import tune_malloc
+    from model.train.loop import TrainConfig, train
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    tune_malloc()
+    if threads:
+        torch.set_num_threads(threads)
+    cfg = TrainConfig(
+        config=config,
+        data=data,
+        steps=steps,
+        batch_size=batch_size,
+        lr=lr,
+        seed=seed,
+        workers=workers,
+        checkpoint_every=checkpoint_every,
+        log_every=log_every,
+    )
+    path = train(cfg, out, resume=resume, device=device, progress=progress)
+    typer.echo(f"trained: {path}")
+
+
+def eval_cmd(
+    checkpoint: Annotated[
+        str, typer.Option("--checkpoint", help="a checkpoint file, or 'default'")
+    ] = "default",
+    data: DataOpt = "sim",
+    scans: Annotated[int, typer.Option(help="scans to evaluate (sim: how many; files: at most)")] = 200,
+    seed: Annotated[int, typer.Option(help="sim stream of the held-out scans")] = 7,
+    as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON only")] = False,
+    predictions: Annotated[Path | None, typer.Option(help="write predictions (native .npz) here")] = None,
+    pictures: Annotated[
+        Path | None, typer.Option(help="write a BEV picture per scan into this folder")
+    ] = None,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Waymo-style AP/APH per class and level, full turn and per buffered sectors."""
+    from model.checkpoint import resolve_checkpoint
+    from model.data.sources import scan_source
+    from model.data.types import LabeledScan
+    from model.eval.metrics import format_table
+    from model.eval.prediction_files import write_predictions
+    from model.eval.runner import ScanResult, run_eval, score
+    from model.runtime import pick_device, tune_malloc
+
+    tune_malloc()
+    model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
+    source = scan_source(data, seed, shuffle=False)
+    count = min(scans, len(source))
+    t0 = time.perf_counter()
+
+    def on_scan(scan: LabeledScan, r: ScanResult) -> None:
+        if pictures is not None:
+            from model.eval.pictures import draw_result
+
+            draw_result(pictures / f"{r.name}.png", scan, r)
+
+    results = run_eval(model, range(count), source, on_scan)
+    metrics = score(results)
+    if predictions is not None:
+        write_predictions(predictions, results)
+    if as_json:
+        typer.echo(json.dumps(metrics, indent=2))
+        return
+    typer.echo(f"checkpoint {ckpt_path}, data {data}, {count} scans in {time.perf_counter() - t0:.1f} s")
+    typer.echo(format_table(metrics))
+    for b, m in metrics["by_buffered_sectors"].items():
+        l1 = m["LEVEL_1"]
+        typer.echo(f"buffered {b}: LEVEL_1 mean AP {l1['mean']['AP']:.3f} APH {l1['mean']['APH']:.3f}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("train")(train_cmd)
+    app.command("eval")(eval_cmd)

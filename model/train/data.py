@@ -1,0 +1,133 @@
+"""Training samples: one augmented scan cut into the model's sectors in time order, with the targets of
+every buffer fill level.
+
+A sample's sectors run in time order starting at a random sector (a stream can start anywhere in the turn).
+The model encodes them as one stream, so the global Mamba carries its state from sector to sector exactly as
+when streaming (causal: nothing of a later sector reaches an earlier one). Prediction k (k = 0 .. S-1) is
+made from sectors 0 .. k, that is the new sector k with k buffered ones, and its targets are the boxes whose
+centre lies in those sectors: every fill level of the buffer is learned in every step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import IterableDataset, get_worker_info
+
+from model.config import PHiMConfig
+from model.data.types import LabeledScan
+from model.train.targets import BEVTargets, TargetConfig, build_targets
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    rotate: bool = True  # a uniform random yaw about z, before the scan is cut into sectors
+    flip: bool = True  # mirror left/right (y -> -y) with probability 0.5
+    scale: tuple[float, float] = (0.95, 1.05)  # uniform global scale of points and boxes
+
+
+@dataclass(frozen=True)
+class SampleConfig:
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    targets: TargetConfig = field(default_factory=TargetConfig)
+    random_start: bool = True  # the first sector in time is random (else sector 0)
+
+
+@dataclass(frozen=True)
+class TrainSample:
+    name: str
+    sectors: list[Tensor]  # S x (N_k, C) float32, in time order
+    targets: list[BEVTargets]  # S: targets of the prediction from sectors[: k + 1]
+
+
+def model_columns(scan: LabeledScan, point_features: int) -> np.ndarray:
+    """The scan's points as the model's columns x, y, z, intensity[, elongation] -> (N, point_features)."""
+    names = ("x", "y", "z", "intensity", "elongation")[:point_features]
+    cols = [
+        scan.points[:, scan.fields.index(n)] if n in scan.fields else np.zeros(len(scan.points), np.float32)
+        for n in names
+    ]
+    return np.stack(cols, axis=1).astype(np.float32)
+
+
+def augment(
+    points: np.ndarray, boxes: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """points (N, C), boxes (M, 7) -> augmented copies (same shapes)."""
+    p, b = points.copy(), boxes.astype(np.float32).copy()
+    if cfg.flip and rng.random() < 0.5:
+        p[:, 1] *= -1
+        b[:, 1] *= -1
+        b[:, 6] *= -1
+    if cfg.rotate:
+        a = rng.uniform(-math.pi, math.pi)
+        c, s = math.cos(a), math.sin(a)
+        for arr in (p, b):
+            x, y = arr[:, 0].copy(), arr[:, 1].copy()
+            arr[:, 0], arr[:, 1] = c * x - s * y, s * x + c * y
+        b[:, 6] += a
+    lo, hi = cfg.scale
+    if hi > lo:
+        k = rng.uniform(lo, hi)
+        p[:, :3] *= k
+        b[:, :6] *= k
+    b[:, 6] = (b[:, 6] + math.pi) % (2 * math.pi) - math.pi
+    return p, b
+
+
+def sector_index(x: np.ndarray, y: np.ndarray, sectors: int) -> np.ndarray:
+    """(N,) x, y -> (N,) sector in [0, sectors), as `model.sectors.sector_of_points`."""
+    k = np.floor((np.arctan2(y, x) + math.pi) / (2 * math.pi / sectors)).astype(np.int64)
+    return np.clip(k, 0, sectors - 1)
+
+
+def make_sample(
+    scan: LabeledScan, model_cfg: PHiMConfig, cfg: SampleConfig, rng: np.random.Generator
+) -> TrainSample:
+    points = model_columns(scan, model_cfg.vfe.point_features)
+    points, boxes = augment(points, scan.gt.boxes, rng, cfg.augment)
+    n = model_cfg.sectors_per_turn
+    start = int(rng.integers(n)) if cfg.random_start else 0
+    order = [(start + i) % n for i in range(n)]
+    point_sector = sector_index(points[:, 0], points[:, 1], n)  # (N,)
+    box_sector = sector_index(boxes[:, 0], boxes[:, 1], n)  # (M,)
+    target = scan.gt.num_points > 0  # a box without points is not a target (Waymo)
+    sectors = [torch.from_numpy(np.ascontiguousarray(points[point_sector == k])) for k in order]
+    targets = []
+    for k in range(n):
+        sel = target & np.isin(box_sector, order[: k + 1])
+        targets.append(
+            build_targets(
+                boxes[sel], scan.gt.labels[sel], len(model_cfg.head.class_names), model_cfg.bev, cfg.targets
+            )
+        )
+    return TrainSample(scan.name, sectors, targets)
+
+
+class SampleStream(IterableDataset):
+    """Endless TrainSamples: scan i comes from `scan_at(i)` for i = first, first + stride, ...
+
+    `stride` and `first` spread scans over DDP ranks; data-loader workers split them further. The
+    augmentation of scan i is seeded by (seed, i), so a resumed run sees the same samples again.
+    """
+
+    def __init__(self, scan_at, model_cfg: PHiMConfig, cfg: SampleConfig, seed: int, first: int, stride: int):
+        super().__init__()
+        self.scan_at, self.model_cfg, self.cfg = scan_at, model_cfg, cfg
+        self.seed, self.first, self.stride = seed, first, stride
+
+    def __iter__(self) -> Iterator[TrainSample]:
+        info = get_worker_info()
+        wid, nw = (info.id, info.num_workers) if info is not None else (0, 1)
+        if info is not None:
+            torch.set_num_threads(1)
+        i = self.first + wid * self.stride
+        while True:
+            rng = np.random.default_rng([self.seed, i])
+            yield make_sample(self.scan_at(i), self.model_cfg, self.cfg, rng)
+            i += nw * self.stride

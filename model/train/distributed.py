@@ -1,0 +1,61 @@
+"""Process-group handling: a plain single process, or DDP under torchrun (NCCL on GPUs, gloo on CPUs)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as torch_dist
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+
+from model.runtime import pick_device
+
+log = logging.getLogger("phim.train")
+
+
+@dataclass(frozen=True)
+class Dist:
+    rank: int
+    world: int
+    device: torch.device
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @staticmethod
+    def from_env(device: str = "auto") -> Dist:
+        """torchrun sets WORLD_SIZE, RANK and LOCAL_RANK; without them this is one process."""
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        dev = pick_device(device)
+        if world == 1:
+            log.info("training on %s, one process", dev)
+            return Dist(0, 1, dev)
+        rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+        if dev.type == "cuda":
+            dev = torch.device("cuda", local)
+            torch.cuda.set_device(dev)
+        backend = "nccl" if dev.type == "cuda" else "gloo"
+        torch_dist.init_process_group(backend=backend)
+        log.info("DDP rank %d of %d on %s (%s)", rank, world, dev, backend)
+        return Dist(rank, world, dev)
+
+    def wrap(self, module: nn.Module) -> nn.Module:
+        if self.world == 1:
+            return module
+        ids = [self.device.index] if self.device.type == "cuda" else None
+        return DistributedDataParallel(module, device_ids=ids)
+
+    def autocast(self, enabled: bool) -> contextlib.AbstractContextManager:
+        """bf16 autocast on CUDA when enabled; float32 otherwise (CPU autocast would only slow us down)."""
+        if enabled and self.device.type == "cuda":
+            return torch.autocast("cuda", dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def close(self) -> None:
+        if self.world > 1 and torch_dist.is_initialized():
+            torch_dist.destroy_process_group()

@@ -1,0 +1,225 @@
+"""`phim train`: the training loop (one process, or one per GPU/CPU under torchrun with DDP).
+
+A run directory holds:
+    train.json     the TrainConfig of the run (a resumed run must match it, except `steps`)
+    metrics.csv    one row per logged step (loss parts, learning rate, scans/s)
+    state.pt       model, optimizer, scheduler and step: what `--resume` continues from
+    model.pt       the latest weights as a phim checkpoint (`phim eval --checkpoint`, `phim serve`)
+    tb/            TensorBoard events, when tensorboard is installed
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from model.checkpoint import save_checkpoint
+from model.config import get_config
+from model.data.sources import scan_source
+from model.detector import PHiM
+from model.train.data import SampleConfig, SampleStream, TrainSample
+from model.train.distributed import Dist
+from model.train.loss import LossConfig, LossParts
+from model.train.step import TrainStep
+
+log = logging.getLogger("phim.train")
+METRICS = ("step", "loss", "heatmap", "reg", "iou_branch", "iou_loss", "mean_iou", "lr", "scans_per_s")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    config: str = "tiny"  # model config name
+    data: str = "sim"  # a data spec: sim, kitti:DIR, nuscenes:DIR, native:DIR
+    steps: int = 6000
+    batch_size: int = 1  # scans per step and process
+    lr: float = 3e-3  # one-cycle peak
+    weight_decay: float = 0.01
+    grad_clip: float = 10.0
+    pct_start: float = 0.3  # share of the steps spent warming up to the peak
+    div_factor: float = 10.0  # start lr = peak / div_factor
+    final_div_factor: float = 100.0
+    seed: int = 0  # the simulator's scan stream and the augmentation (evaluation uses seed 7)
+    workers: int = 1  # data-loader processes per training process
+    amp: bool = True  # bf16 autocast on CUDA (CPU runs in float32)
+    checkpoint_every: int = 200
+    log_every: int = 10
+    sample: SampleConfig = field(default_factory=SampleConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+
+
+def _plain(cfg: TrainConfig) -> dict[str, Any]:
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+
+
+def _check_resume(out: Path, cfg: TrainConfig) -> None:
+    saved = json.loads((out / "train.json").read_text())
+    mine = _plain(cfg)
+    diff = [k for k in sorted(set(saved) | set(mine)) if k != "steps" and saved.get(k) != mine.get(k)]
+    if diff:
+        raise ValueError(f"--resume: {out}/train.json differs from this run in {', '.join(diff)}")
+
+
+def _optimizer(model: nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Optimizer, Any]:
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr / cfg.div_factor, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(
+        opt,
+        max_lr=cfg.lr,
+        total_steps=cfg.steps,
+        pct_start=cfg.pct_start,
+        div_factor=cfg.div_factor,
+        final_div_factor=cfg.final_div_factor,
+        base_momentum=0.85,
+        max_momentum=0.95,
+    )
+    return opt, sched
+
+
+def _loader(cfg: TrainConfig, model: PHiM, dist: Dist, start_step: int) -> torch.utils.data.DataLoader:
+    stream = SampleStream(
+        scan_source(cfg.data, cfg.seed),
+        model.cfg,
+        cfg.sample,
+        cfg.seed,
+        first=dist.rank + dist.world * start_step * cfg.batch_size,
+        stride=dist.world,
+    )
+    return torch.utils.data.DataLoader(
+        stream,
+        batch_size=cfg.batch_size,
+        collate_fn=list,
+        num_workers=cfg.workers,
+        persistent_workers=cfg.workers > 0,
+        prefetch_factor=2 if cfg.workers > 0 else None,
+    )
+
+
+class _Logger:
+    """metrics.csv (appended across resumes), TensorBoard when installed, a progress line."""
+
+    def __init__(self, out: Path, total: int, first: int):
+        self.csv_path = out / "metrics.csv"
+        new = not self.csv_path.exists()
+        self.file = self.csv_path.open("a", newline="")
+        self.writer = csv.writer(self.file)
+        if new:
+            self.writer.writerow(METRICS)
+        self.tb = None
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(out / "tb"))
+        except ImportError:
+            log.info("tensorboard not installed: metrics go to %s only", self.csv_path)
+        self.total, self.first = total, first
+
+    def write(self, row: dict[str, float]) -> None:
+        self.writer.writerow([row[k] for k in METRICS])
+        self.file.flush()
+        if self.tb is not None:
+            for k in METRICS[1:]:
+                self.tb.add_scalar(f"train/{k}", row[k], int(row["step"]))
+
+    def close(self) -> None:
+        self.file.close()
+        if self.tb is not None:
+            self.tb.close()
+
+
+def _save(out: Path, step: int, model: PHiM, opt, sched, cfg: TrainConfig) -> None:
+    state = {
+        "step": step,
+        "model": model.state_dict(),
+        "optimizer": opt.state_dict(),
+        "scheduler": sched.state_dict(),
+    }
+    tmp = out / "state.pt.tmp"
+    torch.save(state, tmp)
+    tmp.replace(out / "state.pt")
+    meta = {"trained_steps": step, "train": _plain(cfg), "source": str(out)}
+    save_checkpoint(out / "model.pt", model, meta=meta)
+
+
+def _row(step: int, parts: LossParts, lr: float, scans_per_s: float) -> dict[str, float]:
+    return {
+        "step": step,
+        "loss": float(parts.total.detach()),
+        "heatmap": parts.heatmap,
+        "reg": parts.reg,
+        "iou_branch": parts.iou_branch,
+        "iou_loss": parts.iou_loss,
+        "mean_iou": parts.mean_iou,
+        "lr": lr,
+        "scans_per_s": scans_per_s,
+    }
+
+
+def train(
+    cfg: TrainConfig, out: Path, resume: bool = False, device: str = "auto", progress: bool = True
+) -> Path:
+    """Train (or continue) a run in `out`; returns the path of its latest model.pt."""
+    dist = Dist.from_env(device)
+    torch.manual_seed(cfg.seed + dist.rank)
+    model = PHiM(get_config(cfg.config)).to(dist.device).train()
+    step_fn: nn.Module = dist.wrap(TrainStep(model, cfg.loss))
+    opt, sched = _optimizer(model, cfg)
+    start = 0
+    if resume:
+        _check_resume(out, cfg)
+        state = torch.load(out / "state.pt", map_location=dist.device, weights_only=True)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        start = int(state["step"])
+        log.info("resuming %s at step %d of %d", out, start, cfg.steps)
+    elif dist.is_main:
+        if (out / "state.pt").exists():
+            raise FileExistsError(f"{out} already holds a run; pass --resume to continue it, or pick --out")
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "train.json").write_text(json.dumps(_plain(cfg), indent=2) + "\n")
+    logger = _Logger(out, cfg.steps, start) if dist.is_main else None
+    try:
+        _loop(cfg, out, model, step_fn, opt, sched, dist, start, logger, progress)
+    finally:
+        if logger is not None:
+            logger.close()
+        dist.close()
+    return out / "model.pt"
+
+
+def _loop(cfg, out, model, step_fn, opt, sched, dist: Dist, start: int, logger, progress: bool) -> None:
+    from model.train.progress import Progress
+
+    bar = Progress(cfg.steps, start, enabled=progress and dist.is_main)
+    batches = iter(_loader(cfg, model, dist, start))
+    t_last, n_last = time.perf_counter(), start
+    for step in range(start + 1, cfg.steps + 1):
+        batch: list[TrainSample] = next(batches)
+        with dist.autocast(cfg.amp):
+            parts = step_fn(batch)
+        if not torch.isfinite(parts.total.detach()):
+            raise FloatingPointError(f"step {step}: loss is {float(parts.total)} ({batch[0].name})")
+        opt.zero_grad(set_to_none=True)
+        parts.total.backward()
+        nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        opt.step()
+        sched.step()
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            now = time.perf_counter()
+            rate = (step - n_last) * cfg.batch_size * dist.world / max(now - t_last, 1e-9)
+            t_last, n_last = now, step
+            if logger is not None:
+                row = _row(step, parts, sched.get_last_lr()[0], rate)
+                logger.write(row)
+                bar.update(step, row)
+        if dist.is_main and (step % cfg.checkpoint_every == 0 or step == cfg.steps):
+            _save(out, step, model, opt, sched, cfg)
+    bar.close()

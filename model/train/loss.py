@@ -1,0 +1,112 @@
+"""CenterPoint losses for the head's outputs (as OpenPCDet's CenterHead with an IoU branch and IoU loss).
+
+- heatmap: CenterNet's penalty-reduced focal loss (alpha 2, beta 4), normalised by the number of centres;
+- regression: L1 on (offset x, offset y, z, log l, log w, log h, sin yaw, cos yaw) at the centre cells;
+- IoU branch: L1 between the predicted IoU and 2 * IoU(decoded box, target) - 1 (the box detached);
+- IoU loss: 1 - 3D rotated IoU of the decoded box with its target (gradients into the box regression).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from model.boxes import rotated_iou_3d_aligned
+from model.config import BEVConfig
+from model.head import HeadOutput
+from model.train.targets import BEVTargets
+
+MAX_LOG_DIM = 4.0  # exp(4) = 55 m: keeps early, untrained dims finite
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    heatmap_weight: float = 1.0
+    reg_weight: float = 2.0
+    iou_branch_weight: float = 1.0
+    iou_loss_weight: float = 1.0
+    code_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class LossParts:
+    total: Tensor
+    heatmap: float
+    reg: float
+    iou_branch: float
+    iou_loss: float
+    mean_iou: float  # mean 3D IoU of the decoded boxes at the target cells
+
+
+def focal_loss(logits: Tensor, target: Tensor) -> Tensor:
+    """logits, target (B, K, H, W); target 1 exactly at centres -> summed loss / max(centres, 1)."""
+    logits = logits.float()
+    pos = target.eq(1.0)
+    log_p, log_not_p = F.logsigmoid(logits), F.logsigmoid(-logits)
+    p = torch.sigmoid(logits)
+    pos_loss = (log_p * (1 - p) ** 2)[pos].sum()
+    neg_loss = (log_not_p * p**2 * (1 - target) ** 4)[~pos].sum()
+    return -(pos_loss + neg_loss) / pos.sum().clamp(min=1)
+
+
+def _gather(maps: Tensor, flat: Tensor) -> Tensor:
+    """maps (B, C, H, W), flat (T,) indices into B * H * W -> (T, C)."""
+    b, c, h, w = maps.shape
+    return maps.permute(0, 2, 3, 1).reshape(b * h * w, c).index_select(0, flat).float()
+
+
+def decoded_boxes(reg: Tensor, flat: Tensor, width: int, height: int, bev: BEVConfig) -> Tensor:
+    """reg (T, 8) predicted at flat cells (T,) -> (T, 7) boxes, decoded as `model.head.decode` does."""
+    pix = flat % (width * height)
+    row, col = pix // width, pix % width
+    x = bev.x_min + (col.float() + reg[:, 0]) * bev.cell
+    y = bev.y_min + (row.float() + reg[:, 1]) * bev.cell
+    dims = torch.exp(reg[:, 3:6].clamp(max=MAX_LOG_DIM))
+    yaw = torch.atan2(reg[:, 6], reg[:, 7])
+    return torch.cat([torch.stack([x, y, reg[:, 2]], 1), dims, yaw[:, None]], 1)
+
+
+def center_loss(out: HeadOutput, targets: list[BEVTargets], bev: BEVConfig, cfg: LossConfig) -> LossParts:
+    """Head outputs of B predictions and their B targets -> the weighted loss and its parts."""
+    dev = out.heatmap.device
+    _, _, h, w = out.heatmap.shape
+    hm_target = torch.from_numpy(np.stack([t.heatmap for t in targets])).to(dev)  # (B, K, H, W)
+    hm = focal_loss(out.heatmap, hm_target)
+    flat = torch.from_numpy(np.concatenate([t.index + i * h * w for i, t in enumerate(targets)])).to(dev)
+    n = int(flat.numel())
+    if n == 0:
+        total = cfg.heatmap_weight * hm + _all_outputs(out)
+        return LossParts(total, float(hm.detach()), 0.0, 0.0, 0.0, 0.0)
+    reg_target = torch.from_numpy(np.concatenate([t.reg for t in targets])).to(dev)  # (T, 8)
+    box_target = torch.from_numpy(np.concatenate([t.boxes for t in targets])).to(dev)  # (T, 7)
+    reg = _gather(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)  # (T, 8)
+    weights = reg.new_tensor(cfg.code_weights)
+    reg_loss = ((reg - reg_target).abs() * weights).sum() / n
+    boxes = decoded_boxes(reg, flat, w, h, bev)  # (T, 7)
+    iou = rotated_iou_3d_aligned(boxes, box_target).clamp(0.0, 1.0)  # (T,)
+    iou_pred = _gather(out.iou, flat)[:, 0]  # (T,)
+    iou_branch = (iou_pred - (2 * iou.detach() - 1)).abs().mean()
+    iou_loss = (1 - iou).mean()
+    total = (
+        cfg.heatmap_weight * hm
+        + cfg.reg_weight * reg_loss
+        + cfg.iou_branch_weight * iou_branch
+        + cfg.iou_loss_weight * iou_loss
+    )
+    return LossParts(
+        total,
+        float(hm.detach()),
+        float(reg_loss.detach()),
+        float(iou_branch.detach()),
+        float(iou_loss.detach()),
+        float(iou.detach().mean()),
+    )
+
+
+def _all_outputs(out: HeadOutput) -> Tensor:
+    """A zero that depends on every output, so every parameter gets a (zero) gradient (DDP needs that)."""
+    return sum(t.sum() for t in (out.offset, out.z, out.log_dim, out.rot, out.iou)) * 0.0

@@ -1,0 +1,125 @@
+"""Training targets, losses and samples: the targets decode back to their boxes as the head decodes."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from model.config import tiny
+from model.data.types import GroundTruth, LabeledScan, points_in_boxes
+from model.head import HeadOutput, decode
+from model.synthetic import synthetic_turn
+from model.train.data import AugmentConfig, SampleConfig, augment, make_sample, sector_index
+from model.train.loss import LossConfig, center_loss, decoded_boxes, focal_loss
+from model.train.targets import TargetConfig, build_targets, gaussian_radius
+
+CFG = tiny()
+BOXES = np.array(
+    [
+        [10.3, 3.1, -0.9, 4.5, 1.9, 1.6, 0.3],  # a vehicle ahead
+        [-20.2, -5.7, -0.9, 4.2, 1.8, 1.5, 2.0],  # behind, sector 1
+        [5.1, -12.4, -0.8, 0.7, 0.7, 1.8, -1.0],  # a pedestrian
+        [30.6, 20.2, -0.9, 1.8, 0.6, 1.7, 1.0],  # a cyclist
+    ],
+    np.float32,
+)
+LABELS = np.array([0, 0, 1, 2])
+
+
+def test_gaussian_radius_grows_with_size_and_shrinks_with_overlap():
+    assert gaussian_radius(10, 5, 0.1) > gaussian_radius(5, 2.5, 0.1) > 0
+    assert gaussian_radius(10, 5, 0.7) < gaussian_radius(10, 5, 0.1)
+
+
+def test_targets_decode_back_to_the_boxes():
+    t = build_targets(BOXES, LABELS, 3, CFG.bev, TargetConfig())
+    assert len(t.index) == 4
+    flat = torch.from_numpy(t.index)
+    boxes = decoded_boxes(torch.from_numpy(t.reg), flat, CFG.bev.nx, CFG.bev.ny, CFG.bev)
+    order = np.argsort(np.hypot(BOXES[:, 0], BOXES[:, 1]))  # targets are kept nearest first
+    np.testing.assert_allclose(boxes.numpy(), BOXES[order], atol=1e-4)
+    for label, cell in zip(t.labels, t.index, strict=True):  # the peak sits at the centre cell
+        assert t.heatmap[label].reshape(-1)[cell] == 1.0
+    assert t.heatmap.max() == 1.0 and (t.heatmap == 1.0).sum() == 4
+
+
+def _perfect_output(targets) -> HeadOutput:
+    """Head maps that predict exactly the targets (logits +-20 from the heatmap, regression at centres)."""
+    t = targets
+    k, h, w = t.heatmap.shape
+    hm = torch.full((1, k, h, w), -20.0)
+    hm.view(1, k, -1)[0, torch.from_numpy(t.labels), torch.from_numpy(t.index)] = 20.0
+    reg = torch.zeros(1, 8, h * w)
+    reg[0, :, torch.from_numpy(t.index)] = torch.from_numpy(t.reg).T
+    reg = reg.view(1, 8, h, w)
+    iou = torch.ones(1, 1, h, w)
+    return HeadOutput(hm, reg[:, 0:2], reg[:, 2:3], reg[:, 3:6], reg[:, 6:8], iou)
+
+
+def test_perfect_head_output_decodes_to_the_boxes_and_has_a_small_loss():
+    t = build_targets(BOXES, LABELS, 3, CFG.bev, TargetConfig())
+    out = _perfect_output(t)
+    det = decode(out, CFG.head, CFG.bev)[0]
+    order = np.argsort(np.hypot(BOXES[:, 0], BOXES[:, 1]))
+    got = det.boxes.numpy()[np.argsort(np.hypot(det.boxes[:, 0].numpy(), det.boxes[:, 1].numpy()))]
+    np.testing.assert_allclose(got, BOXES[order], atol=1e-4)
+    parts = center_loss(out, [t], CFG.bev, LossConfig())
+    assert parts.reg < 1e-5 and parts.iou_loss < 1e-3 and parts.mean_iou > 0.999
+    noisy = HeadOutput(out.heatmap, out.offset + 0.3, out.z, out.log_dim, out.rot, out.iou)
+    worse = center_loss(noisy, [t], CFG.bev, LossConfig())
+    assert worse.reg > 0.1 and worse.mean_iou < 0.9 and float(worse.total) > float(parts.total)
+
+
+def test_focal_loss_prefers_the_right_heatmap():
+    t = torch.from_numpy(build_targets(BOXES, LABELS, 3, CFG.bev, TargetConfig()).heatmap)[None]
+    good = torch.logit(t.clamp(1e-4, 1 - 1e-4))
+    assert focal_loss(good, t) < focal_loss(torch.zeros_like(t), t) < focal_loss(-good, t)
+
+
+def _scan() -> LabeledScan:
+    pts = synthetic_turn(0).numpy()
+    # drop a cloud of points into every box so that all four are targets
+    rng = np.random.default_rng(0)
+    inside = [b[:3] + (rng.random((50, 3)) - 0.5) * b[3:6] * 0.5 for b in BOXES]
+    extra = np.concatenate([np.concatenate([c, np.full((50, 1), 0.5)], 1) for c in inside]).astype(np.float32)
+    pts = np.concatenate([pts, extra])
+    return LabeledScan("t", pts, ("x", "y", "z", "intensity"), GroundTruth.from_boxes(BOXES, LABELS, pts))
+
+
+def test_augment_keeps_points_inside_their_boxes():
+    scan = _scan()
+    before = points_in_boxes(scan.points[:, :3], BOXES).sum(0)
+    for seed in range(5):
+        p, b = augment(scan.points, BOXES, np.random.default_rng(seed), AugmentConfig())
+        np.testing.assert_array_equal(points_in_boxes(p[:, :3], b).sum(0), before)
+        assert np.all(np.abs(b[:, 6]) <= math.pi)
+
+
+def test_sample_sectors_in_time_order_and_targets_grow_with_the_buffer():
+    scan = _scan()
+    cfg = SampleConfig(augment=AugmentConfig(rotate=False, flip=False, scale=(1.0, 1.0)))
+    s = make_sample(scan, CFG, cfg, np.random.default_rng(3))
+    assert sum(len(x) for x in s.sectors) == len(scan.points)
+    ks = [int(sector_index(x[:, 0].numpy(), x[:, 1].numpy(), 4)[0]) for x in s.sectors]
+    assert sorted(ks) == [0, 1, 2, 3] and all((b - a) % 4 == 1 for a, b in itertools.pairwise(ks))
+    counts = [len(t.index) for t in s.targets]
+    assert counts == sorted(counts) and counts[-1] == 4
+    box_sector = sector_index(BOXES[:, 0], BOXES[:, 1], 4)
+    assert counts[0] == int((box_sector == ks[0]).sum())
+
+
+@pytest.mark.parametrize("bad", [0])
+def test_a_box_without_points_is_not_a_target(bad):
+    scan = _scan()
+    gt = scan.gt
+    counts = gt.num_points.copy()
+    counts[bad] = 0
+    empty = LabeledScan(
+        scan.name, scan.points, scan.fields, GroundTruth(gt.boxes, gt.labels, counts, gt.difficulty)
+    )
+    s = make_sample(empty, CFG, SampleConfig(), np.random.default_rng(0))
+    assert len(s.targets[-1].index) == 3
