@@ -20,7 +20,7 @@ RUN pip freeze | grep -i '^torch==' > /tmp/torch-constraint.txt \
  && pip install -c /tmp/torch-constraint.txt ".[server]" \
  && python -c "import torch, fastapi, zenoh; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
 
-# Weights inside the image: the default model as a checkpoint file (switch to the trained one when it ships).
+# Weights inside the image: the shipped default model (model/weights/tiny-sim.pt) as a checkpoint file.
 RUN python -m server.default_model --out /opt/phim/weights/phim-default.pt
 
 RUN useradd --create-home --uid 10001 phim

@@ -10,10 +10,11 @@ import pytest
 import torch
 
 from model.config import tiny
+from model.data.readers import sector_of_xy
 from model.data.types import GroundTruth, LabeledScan, points_in_boxes
 from model.head import HeadOutput, decode
 from model.synthetic import synthetic_turn
-from model.train.data import AugmentConfig, SampleConfig, augment, make_sample, sector_index
+from model.train.data import AugmentConfig, SampleConfig, augment, make_sample
 from model.train.loss import LossConfig, center_loss, decoded_boxes, focal_loss
 from model.train.targets import TargetConfig, build_targets, gaussian_radius
 
@@ -104,11 +105,11 @@ def test_sample_sectors_in_time_order_and_targets_grow_with_the_buffer():
     cfg = SampleConfig(augment=AugmentConfig(rotate=False, flip=False, scale=(1.0, 1.0)))
     s = make_sample(scan, CFG, cfg, np.random.default_rng(3))
     assert sum(len(x) for x in s.sectors) == len(scan.points)
-    ks = [int(sector_index(x[:, 0].numpy(), x[:, 1].numpy(), 4)[0]) for x in s.sectors]
+    ks = [int(sector_of_xy(x[:, 0].numpy(), x[:, 1].numpy(), 4)[0]) for x in s.sectors]
     assert sorted(ks) == [0, 1, 2, 3] and all((b - a) % 4 == 1 for a, b in itertools.pairwise(ks))
     counts = [len(t.index) for t in s.targets]
     assert counts == sorted(counts) and counts[-1] == 4
-    box_sector = sector_index(BOXES[:, 0], BOXES[:, 1], 4)
+    box_sector = sector_of_xy(BOXES[:, 0], BOXES[:, 1], 4)
     assert counts[0] == int((box_sector == ks[0]).sum())
 
 

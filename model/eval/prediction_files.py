@@ -51,16 +51,27 @@ def write_predictions(path: Path, results: Sequence[ScanResult]) -> None:
     )
 
 
-def read_predictions(path: Path, buffered_sectors: int | None = None) -> dict[str, Predictions]:
-    """-> scan name -> its Predictions at `buffered_sectors` (default: the full turn, the largest value)."""
+def read_predictions_by_fill(path: Path) -> dict[str, list[Predictions]]:
+    """-> scan name -> its Predictions per fill level (index b: b buffered sectors; the last: full turn)."""
     with np.load(path, allow_pickle=False) as f:
-        if str(f["format"]) != FORMAT or int(f["version"]) != VERSION:
+        if "format" not in f.files or str(f["format"]) != FORMAT or int(f["version"]) != VERSION:
             raise ValueError(f"{path}: not a {FORMAT} v{VERSION} file")
         arrays = {k: f[k] for k in f.files}
     level = arrays["buffered_sectors"]
-    b = int(level.max(initial=0)) if buffered_sectors is None else buffered_sectors
+    fills = int(level.max(initial=0)) + 1
     out = {}
     for s, name in enumerate(arrays["scan_names"].tolist()):
-        sel = (arrays["scan_index"] == s) & (level == b)
-        out[str(name)] = Predictions(arrays["boxes"][sel], arrays["scores"][sel], arrays["labels"][sel])
+        mine = arrays["scan_index"] == s
+        out[str(name)] = [
+            Predictions(arrays["boxes"][sel], arrays["scores"][sel], arrays["labels"][sel])
+            for sel in (mine & (level == b) for b in range(fills))
+        ]
     return out
+
+
+def read_predictions(path: Path, buffered_sectors: int | None = None) -> dict[str, Predictions]:
+    """-> scan name -> its Predictions at `buffered_sectors` (default: the full turn, the largest value)."""
+    return {
+        k: v[-1 if buffered_sectors is None else buffered_sectors]
+        for k, v in read_predictions_by_fill(path).items()
+    }

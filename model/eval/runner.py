@@ -15,11 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from model.data.readers import sector_of_xy
 from model.data.types import GroundTruth, LabeledScan, Predictions
 from model.detector import PHiM
 from model.eval.metrics import MetricsConfig, crop_to_fov, evaluate
 from model.phim_block import StreamLayout
-from model.train.data import model_columns, sector_index
+from model.train.data import feature_columns
 
 
 @dataclass(frozen=True)
@@ -33,25 +34,46 @@ def _select(p: Predictions, keep: np.ndarray) -> Predictions:
     return Predictions(p.boxes[keep], p.scores[keep], p.labels[keep])
 
 
+def truths_by_fill(scan: LabeledScan, sectors: int) -> list[GroundTruth]:
+    """The ground truth prediction b (b buffered sectors) is scored against: boxes centred in sectors 0..b."""
+    gt_sector = sector_of_xy(scan.gt.boxes[:, 0], scan.gt.boxes[:, 1], sectors)  # (M,)
+    return [scan.gt.select(gt_sector <= b) for b in range(sectors)]
+
+
+def crop_prediction(p: Predictions, b: int, sectors: int, fov: tuple[float, float] | None) -> Predictions:
+    """Prediction b keeps the boxes centred in sectors 0..b (all of them for the full turn) and in `fov`."""
+    p = crop_to_fov(p, fov)
+    if b < sectors - 1:
+        p = _select(p, sector_of_xy(p.boxes[:, 0], p.boxes[:, 1], sectors) <= b)
+    return p
+
+
 @torch.inference_mode()
 def predict_scan(model: PHiM, scan: LabeledScan) -> ScanResult:
     cfg = model.cfg
     n = cfg.sectors_per_turn
-    points = model_columns(scan, cfg.vfe.point_features)  # (N, C)
-    sector = sector_index(points[:, 0], points[:, 1], n)  # (N,)
+    points = feature_columns(scan, cfg.vfe.point_features)  # (N, C)
+    sector = sector_of_xy(points[:, 0], points[:, 1], n)  # (N,)
     sectors = [torch.from_numpy(np.ascontiguousarray(points[sector == k])).to(model.device) for k in range(n)]
     enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
     dets = model.detect([enc.sectors[: b + 1] for b in range(n)])
-    gt_sector = sector_index(scan.gt.boxes[:, 0], scan.gt.boxes[:, 1], n)  # (M,)
-    preds, truths = [], []
-    for b, d in enumerate(dets):
-        p = Predictions(d.boxes.cpu().numpy(), d.scores.cpu().numpy(), d.labels.cpu().numpy())
-        p = crop_to_fov(p, scan.label_fov)
-        if b < n - 1:
-            p = _select(p, sector_index(p.boxes[:, 0], p.boxes[:, 1], n) <= b)
-        preds.append(p)
-        truths.append(scan.gt.select(gt_sector <= b))
-    return ScanResult(scan.name, preds, truths)
+    preds = [
+        crop_prediction(
+            Predictions(d.boxes.cpu().numpy(), d.scores.cpu().numpy(), d.labels.cpu().numpy()),
+            b,
+            n,
+            scan.label_fov,
+        )
+        for b, d in enumerate(dets)
+    ]
+    return ScanResult(scan.name, preds, truths_by_fill(scan, n))
+
+
+def rescore_scan(scan: LabeledScan, by_fill: list[Predictions]) -> ScanResult:
+    """Predictions read back from a file (one per fill level) -> the ScanResult `score` takes."""
+    n = len(by_fill)
+    preds = [crop_prediction(p, b, n, scan.label_fov) for b, p in enumerate(by_fill)]
+    return ScanResult(scan.name, preds, truths_by_fill(scan, n))
 
 
 def score(results: Sequence[ScanResult], cfg: MetricsConfig | None = None) -> dict:
@@ -78,6 +100,25 @@ def run_eval(
     for i in scans:
         scan = source(i)
         r = predict_scan(model, scan)
+        out.append(r)
+        if on_scan is not None:
+            on_scan(scan, r)
+    return out
+
+
+def run_rescore(
+    by_name: dict[str, list[Predictions]],
+    scans: Sequence[int] | range,
+    source: Callable[[int], LabeledScan],
+    on_scan: Callable[[LabeledScan, ScanResult], None] | None = None,
+) -> list[ScanResult]:
+    """Score stored predictions (scan name -> per fill level) against scans source(i) for i in `scans`."""
+    out = []
+    for i in scans:
+        scan = source(i)
+        if scan.name not in by_name:
+            raise KeyError(f"the predictions file has no scan {scan.name!r} (data scan {i})")
+        r = rescore_scan(scan, by_name[scan.name])
         out.append(r)
         if on_scan is not None:
             on_scan(scan, r)

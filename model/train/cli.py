@@ -71,19 +71,21 @@ def eval_cmd(
     pictures: Annotated[
         Path | None, typer.Option(help="write a BEV picture per scan into this folder")
     ] = None,
+    rescore: Annotated[
+        Path | None, typer.Option(help="score a predictions .npz (from --predictions) instead of a model")
+    ] = None,
     device: DeviceOpt = "auto",
 ) -> None:
     """Waymo-style AP/APH per class and level, full turn and per buffered sectors."""
     from model.checkpoint import resolve_checkpoint
     from model.data.sources import scan_source
     from model.data.types import LabeledScan
-    from model.eval.metrics import format_table
-    from model.eval.prediction_files import write_predictions
-    from model.eval.runner import ScanResult, run_eval, score
+    from model.eval.metrics import count_ground_truths, format_table
+    from model.eval.prediction_files import read_predictions_by_fill, write_predictions
+    from model.eval.runner import ScanResult, run_eval, run_rescore, score
     from model.runtime import pick_device, tune_malloc
 
     tune_malloc()
-    model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
     source = scan_source(data, seed, shuffle=False)
     count = min(scans, len(source))
     t0 = time.perf_counter()
@@ -94,15 +96,21 @@ def eval_cmd(
 
             draw_result(pictures / f"{r.name}.png", scan, r)
 
-    results = run_eval(model, range(count), source, on_scan)
+    if rescore is not None:
+        what = f"predictions {rescore}"
+        results = run_rescore(read_predictions_by_fill(rescore), range(count), source, on_scan)
+    else:
+        model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
+        what = f"checkpoint {ckpt_path}"
+        results = run_eval(model, range(count), source, on_scan)
     metrics = score(results)
     if predictions is not None:
         write_predictions(predictions, results)
     if as_json:
         typer.echo(json.dumps(metrics, indent=2))
         return
-    typer.echo(f"checkpoint {ckpt_path}, data {data}, {count} scans in {time.perf_counter() - t0:.1f} s")
-    typer.echo(format_table(metrics))
+    typer.echo(f"{what}, data {data}, {count} scans in {time.perf_counter() - t0:.1f} s")
+    typer.echo(format_table(metrics, count_ground_truths([r.truths[-1] for r in results])))
     for b, m in metrics["by_buffered_sectors"].items():
         l1 = m["LEVEL_1"]
         typer.echo(f"buffered {b}: LEVEL_1 mean AP {l1['mean']['AP']:.3f} APH {l1['mean']['APH']:.3f}")

@@ -20,6 +20,7 @@ from torch import Tensor
 from torch.utils.data import IterableDataset, get_worker_info
 
 from model.config import PHiMConfig
+from model.data.readers import sector_of_xy
 from model.data.types import LabeledScan
 from model.train.targets import BEVTargets, TargetConfig, build_targets
 
@@ -45,7 +46,7 @@ class TrainSample:
     targets: list[BEVTargets]  # S: targets of the prediction from sectors[: k + 1]
 
 
-def model_columns(scan: LabeledScan, point_features: int) -> np.ndarray:
+def feature_columns(scan: LabeledScan, point_features: int) -> np.ndarray:
     """The scan's points as the model's columns x, y, z, intensity[, elongation] -> (N, point_features)."""
     names = ("x", "y", "z", "intensity", "elongation")[:point_features]
     cols = [
@@ -80,22 +81,16 @@ def augment(
     return p, b
 
 
-def sector_index(x: np.ndarray, y: np.ndarray, sectors: int) -> np.ndarray:
-    """(N,) x, y -> (N,) sector in [0, sectors), as `model.sectors.sector_of_points`."""
-    k = np.floor((np.arctan2(y, x) + math.pi) / (2 * math.pi / sectors)).astype(np.int64)
-    return np.clip(k, 0, sectors - 1)
-
-
 def make_sample(
     scan: LabeledScan, model_cfg: PHiMConfig, cfg: SampleConfig, rng: np.random.Generator
 ) -> TrainSample:
-    points = model_columns(scan, model_cfg.vfe.point_features)
+    points = feature_columns(scan, model_cfg.vfe.point_features)
     points, boxes = augment(points, scan.gt.boxes, rng, cfg.augment)
     n = model_cfg.sectors_per_turn
     start = int(rng.integers(n)) if cfg.random_start else 0
     order = [(start + i) % n for i in range(n)]
-    point_sector = sector_index(points[:, 0], points[:, 1], n)  # (N,)
-    box_sector = sector_index(boxes[:, 0], boxes[:, 1], n)  # (M,)
+    point_sector = sector_of_xy(points[:, 0], points[:, 1], n)  # (N,)
+    box_sector = sector_of_xy(boxes[:, 0], boxes[:, 1], n)  # (M,)
     target = scan.gt.num_points > 0  # a box without points is not a target (Waymo)
     sectors = [torch.from_numpy(np.ascontiguousarray(points[point_sector == k])) for k in order]
     targets = []

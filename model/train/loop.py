@@ -3,7 +3,8 @@
 A run directory holds:
     train.json     the TrainConfig of the run (a resumed run must match it, except `steps`)
     metrics.csv    one row per logged step (loss parts, learning rate, scans/s)
-    state.pt       model, optimizer, scheduler and step: what `--resume` continues from
+    state.pt       model, optimizer and step: what `--resume` continues from (the learning rate is a
+                   function of the step, so `--resume --steps N` can also lengthen a run)
     model.pt       the latest weights as a phim checkpoint (`phim eval --checkpoint`, `phim serve`)
     tb/            TensorBoard events, when tensorboard is installed
 """
@@ -14,6 +15,7 @@ import csv
 import dataclasses
 import json
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,19 +70,27 @@ def _check_resume(out: Path, cfg: TrainConfig) -> None:
         raise ValueError(f"--resume: {out}/train.json differs from this run in {', '.join(diff)}")
 
 
-def _optimizer(model: nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Optimizer, Any]:
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr / cfg.div_factor, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.OneCycleLR(
-        opt,
-        max_lr=cfg.lr,
-        total_steps=cfg.steps,
-        pct_start=cfg.pct_start,
-        div_factor=cfg.div_factor,
-        final_div_factor=cfg.final_div_factor,
-        base_momentum=0.85,
-        max_momentum=0.95,
-    )
-    return opt, sched
+def _cos(start: float, end: float, pct: float) -> float:
+    return end + (start - end) / 2.0 * (math.cos(math.pi * pct) + 1)
+
+
+def one_cycle(step: int, cfg: TrainConfig) -> tuple[float, float]:
+    """(learning rate, Adam beta1) at 0-based `step`, as torch's OneCycleLR (cosine; beta1 0.95-0.85-0.95)."""
+    peak, start_lr = cfg.lr, cfg.lr / cfg.div_factor
+    warm_end = float(cfg.pct_start * cfg.steps) - 1
+    if step <= warm_end:
+        pct = step / warm_end if warm_end > 0 else 1.0
+        return _cos(start_lr, peak, pct), _cos(0.95, 0.85, pct)
+    pct = min(1.0, (step - warm_end) / max(cfg.steps - 1 - warm_end, 1e-9))
+    return _cos(peak, start_lr / cfg.final_div_factor, pct), _cos(0.85, 0.95, pct)
+
+
+def _set_schedule(opt: torch.optim.Optimizer, step: int, cfg: TrainConfig) -> float:
+    lr, beta1 = one_cycle(step, cfg)
+    for group in opt.param_groups:
+        group["lr"] = lr
+        group["betas"] = (beta1, group["betas"][1])
+    return lr
 
 
 def _loader(cfg: TrainConfig, model: PHiM, dist: Dist, start_step: int) -> torch.utils.data.DataLoader:
@@ -134,12 +144,11 @@ class _Logger:
             self.tb.close()
 
 
-def _save(out: Path, step: int, model: PHiM, opt, sched, cfg: TrainConfig) -> None:
+def _save(out: Path, step: int, model: PHiM, opt: torch.optim.Optimizer, cfg: TrainConfig) -> None:
     state = {
         "step": step,
         "model": model.state_dict(),
         "optimizer": opt.state_dict(),
-        "scheduler": sched.state_dict(),
     }
     tmp = out / "state.pt.tmp"
     torch.save(state, tmp)
@@ -170,14 +179,13 @@ def train(
     torch.manual_seed(cfg.seed + dist.rank)
     model = PHiM(get_config(cfg.config)).to(dist.device).train()
     step_fn: nn.Module = dist.wrap(TrainStep(model, cfg.loss))
-    opt, sched = _optimizer(model, cfg)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
     if resume:
         _check_resume(out, cfg)
         state = torch.load(out / "state.pt", map_location=dist.device, weights_only=True)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
         start = int(state["step"])
         log.info("resuming %s at step %d of %d", out, start, cfg.steps)
     elif dist.is_main:
@@ -187,7 +195,7 @@ def train(
         (out / "train.json").write_text(json.dumps(_plain(cfg), indent=2) + "\n")
     logger = _Logger(out, cfg.steps, start) if dist.is_main else None
     try:
-        _loop(cfg, out, model, step_fn, opt, sched, dist, start, logger, progress)
+        _loop(cfg, out, model, step_fn, opt, dist, start, logger, progress)
     finally:
         if logger is not None:
             logger.close()
@@ -195,7 +203,7 @@ def train(
     return out / "model.pt"
 
 
-def _loop(cfg, out, model, step_fn, opt, sched, dist: Dist, start: int, logger, progress: bool) -> None:
+def _loop(cfg, out, model, step_fn, opt, dist: Dist, start: int, logger, progress: bool) -> None:
     from model.train.progress import Progress
 
     bar = Progress(cfg.steps, start, enabled=progress and dist.is_main)
@@ -210,16 +218,16 @@ def _loop(cfg, out, model, step_fn, opt, sched, dist: Dist, start: int, logger, 
         opt.zero_grad(set_to_none=True)
         parts.total.backward()
         nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        lr = _set_schedule(opt, step - 1, cfg)
         opt.step()
-        sched.step()
         if step % cfg.log_every == 0 or step == cfg.steps:
             now = time.perf_counter()
             rate = (step - n_last) * cfg.batch_size * dist.world / max(now - t_last, 1e-9)
             t_last, n_last = now, step
             if logger is not None:
-                row = _row(step, parts, sched.get_last_lr()[0], rate)
+                row = _row(step, parts, lr, rate)
                 logger.write(row)
                 bar.update(step, row)
         if dist.is_main and (step % cfg.checkpoint_every == 0 or step == cfg.steps):
-            _save(out, step, model, opt, sched, cfg)
+            _save(out, step, model, opt, cfg)
     bar.close()

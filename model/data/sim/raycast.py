@@ -201,28 +201,51 @@ def nearest(ray: np.ndarray, t: np.ndarray, cos: np.ndarray, solid: np.ndarray, 
     return Hits(rays_hit, t[w], cos[w], solid[w])
 
 
+Num = float | np.ndarray  # a scalar, or one value per solid of a batch
+
+
 class SolidList:
-    """Collects solids in batches (arrays broadcast to one length per call), then builds `Solids`."""
+    """Collects solids in batches (values broadcast to one per solid), then builds `Solids`."""
 
     def __init__(self) -> None:
         self._parts: list[tuple[np.ndarray, ...]] = []
 
-    def _add(self, kind: int, centre, z0, z1, half_l, half_w, yaw, refl, porosity) -> None:
+    def _add(
+        self,
+        kind: int,
+        centre: np.ndarray,
+        z: tuple[Num, Num],
+        half: tuple[Num, Num],
+        yaw: Num,
+        refl: Num,
+        porosity: Num,
+    ) -> None:
         centre = np.asarray(centre, np.float64).reshape(-1, 2)  # (K, 2)
         n = len(centre)
-        cols = [np.broadcast_to(np.asarray(a, np.float64), (n,)) for a in (z0, z1, half_l, half_w, yaw)]
-        refl, porosity = (np.broadcast_to(np.asarray(a, np.float64), (n,)) for a in (refl, porosity))
+        col = [np.broadcast_to(np.asarray(a, np.float64), (n,)) for a in (*z, *half, yaw, refl, porosity)]
         kinds = np.full(n, kind, np.int8)
-        z = np.stack(cols[:2], 1)  # (K, 2)
-        self._parts.append((kinds, centre, z, np.stack(cols[2:4], 1), cols[4], refl, porosity))
+        self._parts.append((kinds, centre, np.stack(col[:2], 1), np.stack(col[2:4], 1), *col[4:]))
 
-    def boxes(self, centre, z0, z1, length, width, yaw, refl, porosity=0.0) -> None:
-        """(K, 2) centres; z0, z1, length, width, yaw, refl, porosity scalars or (K,)."""
-        self._add(BOX, centre, z0, z1, np.asarray(length) / 2, np.asarray(width) / 2, yaw, refl, porosity)
+    def boxes(
+        self,
+        centre: np.ndarray,
+        z0: Num,
+        z1: Num,
+        length: Num,
+        width: Num,
+        yaw: Num,
+        refl: Num,
+        porosity: Num = 0.0,
+    ) -> None:
+        """(K, 2) centres; bottom, top, length, width, heading, reflectivity, porosity: scalars or (K,)."""
+        half = (np.asarray(length) / 2, np.asarray(width) / 2)
+        self._add(BOX, centre, (z0, z1), half, yaw, refl, porosity)
 
-    def cylinders(self, centre, z0, z1, radius, refl, porosity=0.0) -> None:
-        """(K, 2) centres; z0, z1, radius, refl, porosity scalars or (K,)."""
-        self._add(CYLINDER, centre, z0, z1, radius, radius, 0.0, refl, porosity)
+    def cylinders(
+        self, centre: np.ndarray, z0: Num, z1: Num, radius: Num, refl: Num, porosity: Num = 0.0
+    ) -> None:
+        """(K, 2) centres; bottom, top, radius, reflectivity, porosity: scalars or (K,)."""
+        self._add(CYLINDER, centre, (z0, z1), (radius, radius), 0.0, refl, porosity)
 
     def build(self) -> Solids:
         if not self._parts:

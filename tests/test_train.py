@@ -1,0 +1,176 @@
+"""Real (short) training runs on the simulator: checkpoints, resume, DDP under torchrun, then `phim eval`."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from model.checkpoint import load_checkpoint
+from model.config import CLASS_NAMES, tiny
+from model.data.sources import SimSource, sim_seed
+from model.data.types import Predictions
+from model.eval.prediction_files import read_predictions, write_predictions
+from model.eval.runner import ScanResult, predict_scan, score
+from model.train.loop import TrainConfig, one_cycle, train
+
+REPO = Path(__file__).resolve().parents[1]
+SHORT = TrainConfig(steps=3, checkpoint_every=2, log_every=1, workers=0)
+
+
+def _rows(run: Path) -> list[dict[str, str]]:
+    with (run / "metrics.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_a_short_run_writes_checkpoints_and_resumes(tmp_path: Path):
+    run = tmp_path / "run"
+    model_path = train(SHORT, run, device="cpu", progress=False)
+    rows = _rows(run)
+    assert [r["step"] for r in rows] == ["1", "2", "3"]
+    assert all(np.isfinite(float(r["loss"])) and float(r["loss"]) > 0 for r in rows)
+    first = load_checkpoint(model_path, expected=tiny())
+    assert first.cfg == tiny()
+    with pytest.raises(FileExistsError, match="--resume"):
+        train(SHORT, run, device="cpu", progress=False)
+    with pytest.raises(ValueError, match="lr"):
+        train(TrainConfig(steps=4, lr=1.0, workers=0), run, resume=True, device="cpu", progress=False)
+    longer = TrainConfig(steps=4, checkpoint_every=2, log_every=1, workers=0)
+    train(longer, run, resume=True, device="cpu", progress=False)
+    assert [r["step"] for r in _rows(run)] == ["1", "2", "3", "4"]
+    state = torch.load(run / "state.pt", weights_only=True)
+    assert state["step"] == 4
+    second = load_checkpoint(model_path)
+    changed = [k for k, v in second.state_dict().items() if not torch.equal(v, first.state_dict()[k])]
+    assert changed  # the resumed step trained
+
+
+def test_one_cycle_schedule_equals_torchs_one_cycle_lr():
+    cfg = TrainConfig(steps=50, lr=2e-3)
+    p = torch.nn.Parameter(torch.zeros(1))
+    opt = torch.optim.AdamW([p], lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.OneCycleLR(
+        opt,
+        max_lr=cfg.lr,
+        total_steps=cfg.steps,
+        pct_start=cfg.pct_start,
+        div_factor=cfg.div_factor,
+        final_div_factor=cfg.final_div_factor,
+        base_momentum=0.85,
+        max_momentum=0.95,
+    )
+    for step in range(cfg.steps):
+        lr, beta1 = one_cycle(step, cfg)
+        assert lr == pytest.approx(opt.param_groups[0]["lr"], rel=1e-9)
+        assert beta1 == pytest.approx(opt.param_groups[0]["betas"][0], rel=1e-9)
+        opt.step()
+        sched.step()
+
+
+def test_training_with_a_data_loader_worker_process(tmp_path: Path):
+    cfg = TrainConfig(steps=2, checkpoint_every=2, log_every=1, workers=1, batch_size=2)
+    train(cfg, tmp_path / "run", device="cpu", progress=False)
+    assert float(_rows(tmp_path / "run")[-1]["scans_per_s"]) > 0
+
+
+@pytest.mark.skipif(
+    shutil.which("torchrun", path=str(Path(sys.executable).parent)) is None, reason="torchrun"
+)
+def test_ddp_under_torchrun_on_cpu(tmp_path: Path):
+    """The same command with two processes (gloo): both ranks step together, rank 0 writes the run."""
+    torchrun = str(Path(sys.executable).parent / "torchrun")
+    phim = str(Path(sys.executable).parent / "phim")
+    cmd = [torchrun, "--standalone", "--nproc_per_node", "2", "--no-python", phim, "train"]
+    args = [
+        "--out",
+        str(tmp_path / "ddp"),
+        "--steps",
+        "2",
+        "--workers",
+        "0",
+        "--threads",
+        "1",
+        "--no-progress",
+    ]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    done = subprocess.run(
+        cmd + args + ["--log-every", "1"], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "DDP rank 0 of 2" in done.stderr and "DDP rank 1 of 2" in done.stderr
+    rows = _rows(tmp_path / "ddp")
+    assert [r["step"] for r in rows] == ["1", "2"]
+    load_checkpoint(tmp_path / "ddp" / "model.pt", expected=tiny())
+
+
+def test_sim_streams_are_distinct_and_reproducible():
+    assert sim_seed(0, 5) == sim_seed(0, 5)
+    train_seeds = {sim_seed(0, i) for i in range(2000)}
+    assert not train_seeds & {sim_seed(7, i) for i in range(200)}
+    a, b = SimSource(7)(3), SimSource(7)(3)
+    assert a.name == "sim-7-000003" and np.array_equal(a.points, b.points)
+
+
+def test_eval_scores_every_fill_level_and_predictions_round_trip(tmp_path: Path):
+    torch.manual_seed(0)
+    from model.detector import PHiM
+
+    model = PHiM(tiny()).eval()
+    scan = SimSource(7)(0)
+    r = predict_scan(model, scan)
+    assert len(r.predictions) == 4 and len(r.truths) == 4
+    sizes = [len(t) for t in r.truths]
+    assert sizes == sorted(sizes) and sizes[-1] == len(scan.gt)
+    result = score([r])
+    assert set(result) == {"LEVEL_1", "LEVEL_2", "by_buffered_sectors"}
+    assert set(result["by_buffered_sectors"]) == {"0", "1", "2", "3"}
+    assert result["LEVEL_1"] == result["by_buffered_sectors"]["3"]["LEVEL_1"]
+    # the ground truth (boxes with points: Waymo drops the others) as predictions scores 1 at every fill level
+    seen = [t.select(t.num_points > 0) for t in r.truths]
+    perfect = ScanResult(
+        r.name, [Predictions(t.boxes, np.ones(len(t), np.float32), t.labels) for t in seen], seen
+    )
+    scored = score([perfect])
+    for b, truth in enumerate(seen):
+        present = [CLASS_NAMES[c] for c in np.unique(truth.labels)]
+        assert present and all(
+            scored["by_buffered_sectors"][str(b)]["LEVEL_2"][c]["AP"] == 1.0 for c in present
+        )
+    write_predictions(tmp_path / "p.npz", [r])
+    back = read_predictions(tmp_path / "p.npz")
+    np.testing.assert_array_equal(back[r.name].boxes, r.predictions[-1].boxes)
+    np.testing.assert_array_equal(
+        read_predictions(tmp_path / "p.npz", 0)[r.name].scores, r.predictions[0].scores
+    )
+
+
+def test_phim_eval_command_prints_the_documented_json(tmp_path: Path):
+    from model.checkpoint import save_checkpoint
+    from model.detector import PHiM
+
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "m.pt", PHiM(tiny()))
+    phim = str(Path(sys.executable).parent / "phim")
+    args = ["eval", "--checkpoint", str(tmp_path / "m.pt"), "--data", "sim", "--scans", "2", "--seed", "7"]
+    extra = ["--json", "--predictions", str(tmp_path / "p.npz"), "--pictures", str(tmp_path / "png")]
+    done = subprocess.run([phim, *args, *extra], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout)
+    for top in (result, *result["by_buffered_sectors"].values()):
+        for level in ("LEVEL_1", "LEVEL_2"):
+            assert set(top[level]) == {"VEHICLE", "PEDESTRIAN", "CYCLIST", "mean"}
+            assert all(0.0 <= v <= 1.0 for c in top[level].values() for v in c.values())
+    assert len(read_predictions(tmp_path / "p.npz")) == 2
+    assert len(list((tmp_path / "png").glob("*.png"))) == 2
+    rescore = [phim, "eval", "--rescore", str(tmp_path / "p.npz"), *args[3:], "--json"]
+    again = subprocess.run(rescore, capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert json.loads(again.stdout) == result  # the file holds everything the score needs
