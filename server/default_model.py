@@ -1,9 +1,9 @@
 """The model `phim serve` runs when no checkpoint is given: the shipped default.
 
 The default is `model/weights/tiny-sim.pt`: the `tiny` config trained on the LiDAR simulator
-(docs/model-card.md; `bash scripts/train_default.sh` reproduces it). `python -m server.default_model --out PATH`
-writes it as a checkpoint file (the Docker image bakes its weights in this way). `init_model` gives other
-configs with untrained fixed-seed weights, to measure their speed.
+(docs/model-card.md; `bash scripts/train_default.sh` reproduces it).
+`python -m server.default_model --out PATH` writes it as a checkpoint file (the Docker image bakes its weights
+in this way). `init_model` gives other configs with untrained fixed-seed weights, to measure their speed.
 """
 
 from __future__ import annotations

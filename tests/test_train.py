@@ -43,11 +43,21 @@ def test_a_short_run_writes_checkpoints_and_resumes(tmp_path: Path):
         train(SHORT, run, device="cpu", progress=False)
     with pytest.raises(ValueError, match="lr"):
         train(TrainConfig(steps=4, lr=1.0, workers=0), run, resume=True, device="cpu", progress=False)
-    longer = TrainConfig(steps=4, checkpoint_every=2, log_every=1, workers=0)
-    train(longer, run, resume=True, device="cpu", progress=False)
-    assert [r["step"] for r in _rows(run)] == ["1", "2", "3", "4"]
+    longer = TrainConfig(steps=5, checkpoint_every=2, log_every=1, workers=0)
+    # state.pt holds step 3 (the last step always saves); pretend the run died after logging step 3 at 2
     state = torch.load(run / "state.pt", weights_only=True)
-    assert state["step"] == 4
+    assert state["step"] == 3
+    state["step"] = 2
+    torch.save(state, run / "state.pt")
+    train(longer, run, resume=True, device="cpu", progress=False)
+    assert [r["step"] for r in _rows(run)] == [
+        "1",
+        "2",
+        "3",
+        "4",
+        "5",
+    ]  # row 3 logged once, by the resumed run
+    assert torch.load(run / "state.pt", weights_only=True)["step"] == 5
     second = load_checkpoint(model_path)
     changed = [k for k, v in second.state_dict().items() if not torch.equal(v, first.state_dict()[k])]
     assert changed  # the resumed step trained
@@ -109,6 +119,23 @@ def test_ddp_under_torchrun_on_cpu(tmp_path: Path):
     rows = _rows(tmp_path / "ddp")
     assert [r["step"] for r in rows] == ["1", "2"]
     load_checkpoint(tmp_path / "ddp" / "model.pt", expected=tiny())
+
+
+def test_your_own_data_trains_evaluates_and_loads(tmp_path: Path):
+    """The user's path: convert scans to native .npz, train on them, evaluate the run's checkpoint."""
+    from model.data.readers import write_labeled
+
+    data = tmp_path / "native"
+    data.mkdir()
+    for i in range(2):
+        write_labeled(data / f"scan{i}.npz", SimSource(3)(i))
+    cfg = TrainConfig(data=f"native:{data}", steps=2, checkpoint_every=2, log_every=1, workers=0)
+    model_path = train(cfg, tmp_path / "run", device="cpu", progress=False)
+    phim = str(Path(sys.executable).parent / "phim")
+    args = ["eval", "--checkpoint", str(model_path), "--data", f"native:{data}", "--json"]
+    done = subprocess.run([phim, *args], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert set(json.loads(done.stdout)["by_buffered_sectors"]) == {"0", "1", "2", "3"}
 
 
 def test_sim_streams_are_distinct_and_reproducible():

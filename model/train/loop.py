@@ -118,6 +118,11 @@ class _Logger:
     def __init__(self, out: Path, total: int, first: int):
         self.csv_path = out / "metrics.csv"
         new = not self.csv_path.exists()
+        if not new:  # a resumed run: drop rows logged after the checkpoint it resumes from
+            lines = self.csv_path.read_text().splitlines(keepends=True)
+            self.csv_path.write_text(
+                "".join(lines[:1] + [r for r in lines[1:] if int(r.split(",")[0]) <= first])
+            )
         self.file = self.csv_path.open("a", newline="")
         self.writer = csv.writer(self.file)
         if new:
