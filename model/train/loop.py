@@ -115,7 +115,7 @@ def _loader(cfg: TrainConfig, model: PHiM, dist: Dist, start_step: int) -> torch
 class _Logger:
     """metrics.csv (appended across resumes), TensorBoard when installed, a progress line."""
 
-    def __init__(self, out: Path, total: int, first: int):
+    def __init__(self, out: Path, first: int):
         self.csv_path = out / "metrics.csv"
         new = not self.csv_path.exists()
         if not new:  # a resumed run: drop rows logged after the checkpoint it resumes from
@@ -134,7 +134,6 @@ class _Logger:
             self.tb = SummaryWriter(str(out / "tb"))
         except ImportError:
             log.info("tensorboard not installed: metrics go to %s only", self.csv_path)
-        self.total, self.first = total, first
 
     def write(self, row: dict[str, float]) -> None:
         self.writer.writerow([row[k] for k in METRICS])
@@ -198,7 +197,7 @@ def train(
             raise FileExistsError(f"{out} already holds a run; pass --resume to continue it, or pick --out")
         out.mkdir(parents=True, exist_ok=True)
         (out / "train.json").write_text(json.dumps(_plain(cfg), indent=2) + "\n")
-    logger = _Logger(out, cfg.steps, start) if dist.is_main else None
+    logger = _Logger(out, start) if dist.is_main else None
     try:
         _loop(cfg, out, model, step_fn, opt, dist, start, logger, progress)
     finally:
