@@ -18,10 +18,10 @@ import numpy as np
 
 from clients.base import DetectorClient, ServerError
 from clients.connect import ConnectConfig, make_client
-from clients.pictures import BoxSet, draw_bev
 from clients.predictions import PredictionRecord, PredictionWriter
 from clients.sectorizer import MODEL_FIELDS, split_scan
 from model.data.labels import labels_for
+from model.data.pictures import BoxSet, draw_bev
 from model.data.readers import Scan, find_scans, read_scan
 from server.protocol import SectorMessage
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from clients.pictures import BoxSet, draw_bev
 from model.config import CLASS_NAMES
+from model.data.pictures import BoxSet, draw_bev
 from model.data.types import LabeledScan
 from model.eval.runner import ScanResult
 

@@ -195,16 +195,15 @@ def vehicle_solids(solids: SolidList, rng: np.random.Generator, cands: Candidate
     solids.boxes(centre, body_top[car], base[car] + h[car], cabin_l, w[car] * 0.88, yaw[car], glass, 0.25)
 
 
+def _parts(boxes: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(K, 7) boxes -> (K,) each: bottom z, length, width, height, yaw."""
+    return boxes[:, 2] - boxes[:, 5] / 2, boxes[:, 3], boxes[:, 4], boxes[:, 5], boxes[:, 6]
+
+
 def pedestrian_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray) -> None:
     """Legs (one cylinder), torso (a box across the heading), head (a small cylinder)."""
     k = len(boxes)
-    base, length, w, h, yaw = (
-        boxes[:, 2] - boxes[:, 5] / 2,
-        boxes[:, 3],
-        boxes[:, 4],
-        boxes[:, 5],
-        boxes[:, 6],
-    )
+    base, length, w, h, yaw = _parts(boxes)
     clothes = rng.uniform(0.05, 0.5, k)
     legs = np.minimum(rng.uniform(0.13, 0.18, k), np.minimum(length, w) / 2)
     solids.cylinders(boxes[:, :2], base, base + 0.47 * h, legs, clothes * rng.uniform(0.7, 1.0, k))
@@ -216,13 +215,7 @@ def pedestrian_solids(solids: SolidList, rng: np.random.Generator, boxes: np.nda
 def cyclist_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray) -> None:
     """A bicycle (thin, mostly see-through plate up to 1 m) and a rider: legs, torso, head."""
     k = len(boxes)
-    base, length, w, h, yaw = (
-        boxes[:, 2] - boxes[:, 5] / 2,
-        boxes[:, 3],
-        boxes[:, 4],
-        boxes[:, 5],
-        boxes[:, 6],
-    )
+    base, length, w, h, yaw = _parts(boxes)
     solids.boxes(boxes[:, :2], base, base + 1.0, length * 0.95, 0.12, yaw, rng.uniform(0.3, 0.6, k), 0.5)
     clothes = rng.uniform(0.05, 0.5, k)
     solids.cylinders(boxes[:, :2], base + 0.45, base + 1.0, 0.12, clothes)

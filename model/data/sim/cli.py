@@ -44,17 +44,9 @@ def summary(scan: LabeledScan, seconds: float) -> str:
 
 def draw_scan(path: Path, scan: LabeledScan, extent_m: float = 50.0) -> Path:
     """BEV PNG: points coloured by height, label boxes coloured by class (LEVEL_2 dashed, empty dotted)."""
-    import matplotlib
+    from model.data.pictures import CLASS_COLOURS, bev_axes, box_corners, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from clients.pictures import CLASS_COLOURS, box_corners
-
-    fig, ax = plt.subplots(figsize=(8, 8))
-    ax.set_facecolor("black")
-    p = scan.points
-    ax.scatter(p[:, 0], p[:, 1], c=np.clip(p[:, 2], -2.5, 2.0), s=0.3, cmap="viridis", linewidths=0)
+    plt, fig, ax = bev_axes(scan.points, extent_m)
     gt = scan.gt
     for corners, label, n, level in zip(
         box_corners(gt.boxes), gt.labels, gt.num_points, gt.difficulty, strict=True
@@ -64,20 +56,9 @@ def draw_scan(path: Path, scan: LabeledScan, extent_m: float = 50.0) -> Path:
         ax.plot(ring[:, 0], ring[:, 1], color=CLASS_COLOURS[CLASS_NAMES[label].lower()], lw=1.0, ls=style)
     for i, name in enumerate(CLASS_NAMES):
         ax.plot([], [], color=CLASS_COLOURS[name.lower()], label=f"{name} {int((gt.labels == i).sum())}")
-    ax.plot([0], [0], marker="^", color="white", markersize=6)
     ax.legend(loc="upper right", fontsize=8)
-    ax.set_xlim(-extent_m, extent_m)
-    ax.set_ylim(-extent_m, extent_m)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x forward (m)")
-    ax.set_ylabel("y left (m)")
-    ax.set_title(f"{scan.name}: {len(p)} points (LEVEL_2 dashed, no points dotted)", fontsize=9)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    ax.set_title(f"{scan.name}: {len(scan.points)} points (LEVEL_2 dashed, no points dotted)", fontsize=9)
+    return save_figure(plt, fig, path)
 
 
 def sim_cmd(

@@ -56,6 +56,31 @@ def _draw_boxes(ax, boxes: BoxSet, dashed: bool) -> None:
             ax.text(box[0], box[1], f"{boxes.scores[i]:.2f}", color=colour, fontsize=5)
 
 
+def bev_axes(points: np.ndarray, extent_m: float):
+    """-> (pyplot, figure, axes): a black BEV of points (N, >=3) coloured by height, the sensor at 0."""
+    plt = _pyplot()
+    pts = np.asarray(points)[:: max(1, len(points) // MAX_POINTS)]
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.set_facecolor("black")
+    ax.scatter(pts[:, 0], pts[:, 1], c=np.clip(pts[:, 2], -2.5, 2.0), s=0.3, cmap="viridis", linewidths=0)
+    ax.plot([0], [0], marker="^", color="white", markersize=6)
+    ax.set_xlim(-extent_m, extent_m)
+    ax.set_ylim(-extent_m, extent_m)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x forward (m)")
+    ax.set_ylabel("y left (m)")
+    return plt, fig, ax
+
+
+def save_figure(plt, fig, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def draw_bev(
     path: Path,
     points: np.ndarray,
@@ -65,27 +90,12 @@ def draw_bev(
     extent_m: float = 50.0,
 ) -> Path:
     """Write a BEV PNG: points (N, >=3; x, y, z first) coloured by height, predicted and label boxes."""
-    plt = _pyplot()
-    pts = np.asarray(points)[:: max(1, len(points) // MAX_POINTS)]
-    fig, ax = plt.subplots(figsize=(8, 8))
-    ax.set_facecolor("black")
-    ax.scatter(pts[:, 0], pts[:, 1], c=np.clip(pts[:, 2], -2.5, 2.0), s=0.3, cmap="viridis", linewidths=0)
+    plt, fig, ax = bev_axes(points, extent_m)
     if labels is not None:
         _draw_boxes(ax, labels, dashed=True)
     if predictions is not None:
         _draw_boxes(ax, predictions, dashed=False)
-    ax.plot([0], [0], marker="^", color="white", markersize=6)
-    ax.set_xlim(-extent_m, extent_m)
-    ax.set_ylim(-extent_m, extent_m)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x forward (m)")
-    ax.set_ylabel("y left (m)")
     n_pred = 0 if predictions is None else len(predictions.names)
     n_lab = 0 if labels is None else len(labels.names)
     ax.set_title(f"{title}  predictions {n_pred} (solid)  labels {n_lab} (dashed)", fontsize=9)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(plt, fig, path)
