@@ -166,6 +166,16 @@ def model_columns(points: np.ndarray, fields: tuple[str, ...]) -> tuple[np.ndarr
     return np.ascontiguousarray(points[:, order], dtype=np.float32), names
 
 
+def feature_columns(scan: LabeledScan, point_features: int) -> np.ndarray:
+    """The scan's points as the model's columns x, y, z, intensity[, elongation] -> (N, point_features)."""
+    names = ("x", "y", "z", "intensity", "elongation")[:point_features]
+    cols = [
+        scan.points[:, scan.fields.index(n)] if n in scan.fields else np.zeros(len(scan.points), np.float32)
+        for n in names
+    ]
+    return np.stack(cols, axis=1).astype(np.float32)
+
+
 def read_labeled(path: Path, sectors: int = DEFAULT_SECTORS) -> LabeledScan:
     """A recorded scan with its ground truth: KITTI velodyne .bin (+ ../label_2, ../calib), nuScenes
     .pcd.bin (+ NAME_boxes.txt beside it) or native .npz (ground truth optional: empty without it).

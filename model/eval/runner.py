@@ -15,12 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from model.data.readers import sector_of_xy
+from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import GroundTruth, LabeledScan, Predictions
 from model.detector import PHiM
 from model.eval.metrics import MetricsConfig, crop_to_fov, evaluate
 from model.phim_block import StreamLayout
-from model.train.data import feature_columns
 
 
 @dataclass(frozen=True)

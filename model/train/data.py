@@ -20,7 +20,7 @@ from torch import Tensor
 from torch.utils.data import IterableDataset, get_worker_info
 
 from model.config import PHiMConfig
-from model.data.readers import sector_of_xy
+from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import LabeledScan
 from model.train.targets import BEVTargets, TargetConfig, build_targets
 
@@ -44,16 +44,6 @@ class TrainSample:
     name: str
     sectors: list[Tensor]  # S x (N_k, C) float32, in time order
     targets: list[BEVTargets]  # S: targets of the prediction from sectors[: k + 1]
-
-
-def feature_columns(scan: LabeledScan, point_features: int) -> np.ndarray:
-    """The scan's points as the model's columns x, y, z, intensity[, elongation] -> (N, point_features)."""
-    names = ("x", "y", "z", "intensity", "elongation")[:point_features]
-    cols = [
-        scan.points[:, scan.fields.index(n)] if n in scan.fields else np.zeros(len(scan.points), np.float32)
-        for n in names
-    ]
-    return np.stack(cols, axis=1).astype(np.float32)
 
 
 def augment(
