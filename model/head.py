@@ -97,6 +97,19 @@ class CenterHead(nn.Module):
         )
 
 
+def local_maxima(hm: Tensor) -> Tensor:
+    """(B, K, H, W) -> bool, true where a cell is >= its 8 neighbours: the same as
+    `max_pool2d(hm, 3, stride=1, padding=1) == hm`, in 8 shifted comparisons (faster on CPU)."""
+    h, w = hm.shape[-2:]
+    padded = F.pad(hm, (1, 1, 1, 1), value=float("-inf"))  # (B, K, H + 2, W + 2)
+    peak = torch.ones_like(hm, dtype=torch.bool)
+    for dy in range(3):
+        for dx in range(3):
+            if dy != 1 or dx != 1:
+                peak &= hm >= padded[..., dy : dy + h, dx : dx + w]
+    return peak
+
+
 @dataclass
 class _Candidates:
     """Top-k peaks of a batch, before score filtering and NMS."""
@@ -111,8 +124,7 @@ def _peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> _Candi
     """Local maxima of the class heatmaps, the top cfg.pre_nms_top_k over all classes, decoded to boxes."""
     hm = torch.sigmoid(out.heatmap.float())  # (B, K, H, W)
     b, k, h, w = hm.shape
-    peak = F.max_pool2d(hm, kernel_size=3, stride=1, padding=1) == hm  # (B, K, H, W) 3x3 local maxima
-    hm = torch.where(peak, hm, torch.zeros_like(hm))
+    hm = torch.where(local_maxima(hm), hm, torch.zeros_like(hm))
     top = min(cfg.pre_nms_top_k, k * h * w)
     heat, flat = torch.topk(hm.reshape(b, k * h * w), top, dim=1)  # (B, T)
     labels = torch.div(flat, h * w, rounding_mode="floor")  # (B, T)

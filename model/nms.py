@@ -18,17 +18,19 @@ from model.boxes import near_pairs, rotated_iou_bev_aligned
 _BLOCK = 64  # candidates resolved together in the greedy pass (small: cheap, unthreaded ops)
 
 
-def _overlap_matrix(boxes: Tensor, iou_threshold: float) -> Tensor:
-    """(N, 7) boxes in descending score order -> (N, N) bool, [i, j] = i < j and IoU(i, j) > threshold."""
+def _overlap_matrix(boxes: Tensor, thresholds: Tensor, groups: Tensor) -> Tensor:
+    """(N, 7) boxes in descending score order, (N,) IoU threshold and (N,) group of each box -> (N, N) bool,
+    [i, j] = i < j, same group and IoU(i, j) > thresholds[i] (boxes of one group share a threshold)."""
     n = boxes.shape[0]
     area = boxes[:, 3] * boxes[:, 4]  # (N,)
     over = torch.zeros(n, n, dtype=torch.bool, device=boxes.device)
     for ia, ib in near_pairs(boxes):  # (P,), (P,) with ia < ib
-        if iou_threshold > 0:  # IoU <= min(area) / max(area): boxes of very different size cannot exceed it
-            small, large = torch.minimum(area[ia], area[ib]), torch.maximum(area[ia], area[ib])
-            fit = small >= iou_threshold * large
-            ia, ib = ia[fit], ib[fit]
-        hit = rotated_iou_bev_aligned(boxes[ia], boxes[ib]) > iou_threshold  # (P',)
+        threshold = thresholds[ia]  # (P,)
+        # IoU <= min(area) / max(area): boxes of very different size cannot exceed the threshold
+        small, large = torch.minimum(area[ia], area[ib]), torch.maximum(area[ia], area[ib])
+        fit = (groups[ia] == groups[ib]) & (small >= threshold * large)
+        ia, ib, threshold = ia[fit], ib[fit], threshold[fit]
+        hit = rotated_iou_bev_aligned(boxes[ia], boxes[ib]) > threshold  # (P',)
         over[ia[hit], ib[hit]] = True
     return over
 
@@ -68,11 +70,23 @@ def nms_rotated(boxes: Tensor, scores: Tensor, iou_threshold: float, max_out: in
         raise ValueError(f"need boxes (N, 7), scores (N,); got {tuple(boxes.shape)}, {tuple(scores.shape)}")
     if not iou_threshold >= 0.0:  # also rejects NaN
         raise ValueError(f"iou_threshold must be >= 0, got {iou_threshold}")
+    n, dev = boxes.shape[0], boxes.device
+    thresholds = torch.full((n,), iou_threshold, dtype=boxes.dtype, device=dev)
+    return _grouped_nms(boxes, scores, thresholds, torch.zeros(n, dtype=torch.int64, device=dev), max_out)
+
+
+def _grouped_nms(boxes: Tensor, scores: Tensor, thresholds: Tensor, groups: Tensor, max_out: int) -> Tensor:
+    """Greedy NMS in which boxes only suppress boxes of their own group, all groups in one pass.
+
+    boxes (N, 7), scores, thresholds, groups (N,) -> kept indices (K,) by descending score, K <= max_out.
+    Groups never interact, so the first max_out kept in score order are the best max_out of the union of
+    the groups' own NMS results.
+    """
     if boxes.shape[0] == 0 or max_out <= 0:
         return torch.zeros(0, dtype=torch.int64, device=boxes.device)
     order = torch.argsort(scores, descending=True, stable=True)  # (N,)
-    keep = _greedy_keep(_overlap_matrix(boxes[order], iou_threshold), max_out)  # (N,)
-    return order[keep][:max_out]
+    over = _overlap_matrix(boxes[order], thresholds[order], groups[order])  # (N, N)
+    return order[_greedy_keep(over, max_out)][:max_out]
 
 
 def class_nms(
@@ -84,28 +98,26 @@ def class_nms(
     post_top_k: int,
 ) -> Tensor:
     """Class-specific NMS: per class c, keep its pre_top_k best boxes, run NMS with iou_thresholds[c]; then
-    keep the post_top_k best of all classes.
+    keep the post_top_k best of all classes. All classes go through one grouped pass (the classes are the
+    groups), which gives the same result as one NMS per class and a merge.
 
     boxes (N, 7), scores (N,), labels (N,) int64 in [0, len(iou_thresholds)) -> kept indices (K,) int64,
     by descending score.
     """
     if labels.shape != scores.shape:
         raise ValueError(f"labels {tuple(labels.shape)} and scores {tuple(scores.shape)} differ")
-    empty = torch.zeros(0, dtype=torch.int64, device=boxes.device)
     if labels.numel() == 0:
-        return empty
+        return torch.zeros(0, dtype=torch.int64, device=boxes.device)
     if int(labels.min()) < 0 or int(labels.max()) >= len(iou_thresholds):
         raise ValueError(f"labels must lie in [0, {len(iou_thresholds)}), one IoU threshold per class")
-    kept = []
-    for c, threshold in enumerate(iou_thresholds):
+    if any(not t >= 0.0 for t in iou_thresholds):
+        raise ValueError(f"IoU thresholds must be >= 0, got {tuple(iou_thresholds)}")
+    parts = []
+    for c in range(len(iou_thresholds)):
         idx = (labels == c).nonzero(as_tuple=True)[0]  # (Nc,)
-        if idx.numel() == 0:
-            continue
         if idx.numel() > pre_top_k:
             idx = idx[torch.topk(scores[idx], pre_top_k).indices]
-        kept.append(idx[nms_rotated(boxes[idx], scores[idx], threshold, post_top_k)])
-    if not kept:
-        return empty
-    merged = torch.cat(kept)  # (K',)
-    order = torch.argsort(scores[merged], descending=True, stable=True)[:post_top_k]
-    return merged[order]
+        parts.append(idx)
+    cand = torch.cat(parts)  # (N',) class by class
+    thresholds = torch.tensor(iou_thresholds, dtype=boxes.dtype, device=boxes.device)[labels[cand]]
+    return cand[_grouped_nms(boxes[cand], scores[cand], thresholds, labels[cand], post_top_k)]

@@ -10,7 +10,7 @@ import torch
 
 from model.boxes import Detections
 from model.config import BEVConfig, HeadConfig, paper, tiny
-from model.head import HEATMAP_PRIOR_BIAS, CenterHead, HeadOutput, decode
+from model.head import HEATMAP_PRIOR_BIAS, CenterHead, HeadOutput, decode, local_maxima
 
 BEV = BEVConfig(x_min=-20.48, x_max=20.48, y_min=-10.24, y_max=10.24, cell=0.32)  # 128 x 64 cells
 CFG = HeadConfig()  # thresholds 0.75 / 0.6 / 0.55, rectifier 0.68 / 0.71 / 0.65, score threshold 0.1
@@ -138,3 +138,15 @@ def test_empty_heatmap() -> None:
     assert len(dets) == 2
     for d in dets:
         assert len(d) == 0 and d.boxes.shape == (0, 7) and d.labels.dtype == torch.int64
+
+
+def test_local_maxima_equals_max_pool() -> None:
+    """The shifted-comparison peak test is the 3x3 max-pool equality, ties and borders included."""
+    g = torch.Generator().manual_seed(3)
+    hm = torch.rand(2, 3, 17, 23, generator=g)
+    hm = torch.where(torch.rand(hm.shape, generator=g) < 0.3, torch.full_like(hm, 0.5), hm)  # plateaus: ties
+    hm[0, 0] = 0.0  # a flat map: every cell is a maximum
+    pooled = torch.nn.functional.max_pool2d(hm, kernel_size=3, stride=1, padding=1) == hm
+    peaks = local_maxima(hm)
+    assert torch.equal(peaks, pooled)
+    assert peaks[0, 0].all() and 0 < int(peaks[1].sum()) < peaks[1].numel()
