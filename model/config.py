@@ -65,6 +65,9 @@ class MambaConfig:
     dt_init_floor: float = 1e-4
     scan: ScanImpl = ScanImpl.CHUNKED
     chunk_size: int = 32
+    # False: Mamba-1, one decay per (channel, state), A = -(1..d_state) (S4D-real). True: the d_state states
+    # of a channel share one decay (as Mamba-2 shares one per head), A_d = -U(1, 16): less work in the scan
+    shared_decay: bool = False
 
 
 @dataclass(frozen=True)

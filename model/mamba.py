@@ -104,8 +104,11 @@ class Mamba(nn.Module):
         self.x_proj = nn.Linear(di, self.dt_rank + 2 * n, bias=False)
         self.dt_proj = nn.Linear(self.dt_rank, di, bias=True)
         self.out_proj = nn.Linear(di, d_model, bias=False)
-        s4d_real = torch.arange(1, n + 1, dtype=torch.float32).repeat(di, 1)  # (di, n) S4D-real: A = -(1..n)
-        self.A_log = nn.Parameter(torch.log(s4d_real))  # (di, n)
+        if cfg.shared_decay:  # one decay per channel, A in -[1, 16] as Mamba-2's per-head init
+            a = torch.empty(di, 1).uniform_(1.0, 16.0)  # (di, 1)
+        else:
+            a = torch.arange(1, n + 1, dtype=torch.float32).repeat(di, 1)  # (di, n) S4D-real: A = -(1..n)
+        self.A_log = nn.Parameter(torch.log(a))  # (di, n) or (di, 1)
         self.D = nn.Parameter(torch.ones(di))
         self.A_log._no_weight_decay = True
         self.D._no_weight_decay = True
@@ -153,7 +156,7 @@ class Mamba(nn.Module):
         xc = F.silu(xc)  # (T, di)
         dt, B, C = self.x_proj(xc).split([self.dt_rank, cfg.d_state, cfg.d_state], dim=-1)
         delta = F.softplus(self.dt_proj(dt))  # (T, di)
-        A = -torch.exp(self.A_log.to(torch.promote_types(self.A_log.dtype, torch.float32)))  # (di, n)
+        A = -torch.exp(self.A_log.to(torch.promote_types(self.A_log.dtype, torch.float32)))  # (di, n | 1)
         y, ssm_state = selective_scan(xc, delta, A, B, C, cu_seqlens, h0, cfg.scan, cfg.chunk_size)  # (T, di)
         y = (y + xc * self.D.to(y.dtype)) * F.silu(z)  # (T, di)
         return self.out_proj(y), MambaState(conv=conv_state, ssm=ssm_state)

@@ -5,7 +5,9 @@ For every sequence of the pack (tokens concatenated along dim 0, described by `c
     h_t = exp(delta_t * A) * h_{t-1} + delta_t * B_t * u_t      (ZOH for A, Euler for B)   # (D, N)
     y_t = sum_n C_t,n * h_t,:,n                                                           # (D,)
 
-with h_{-1} = h0 of that sequence (zeros when h0 is None). No D skip and no gating here.
+with h_{-1} = h0 of that sequence (zeros when h0 is None). No D skip and no gating here. A is (D, N), or
+(D, 1) when the N states of a channel share one decay (`MambaConfig.shared_decay`): then exp(delta_t * A) is
+computed once per channel and broadcast over N.
 
 Two implementations:
 - `selective_scan_ref`: a plain sequential loop; slow, the ground truth.
@@ -40,11 +42,12 @@ def _compute_dtype(*tensors: Tensor) -> torch.dtype:
 
 def _check_inputs(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, cu: Tensor, h0: Tensor | None):
     T, D = u.shape
-    N = A.shape[1]
-    if delta.shape != (T, D) or A.shape != (D, N) or B.shape != (T, N) or C.shape != (T, N):
+    N = B.shape[1] if B.dim() == 2 else -1
+    if delta.shape != (T, D) or A.shape not in ((D, N), (D, 1)) or B.shape != (T, N) or C.shape != (T, N):
         raise ValueError(
             f"selective scan shapes: u {tuple(u.shape)}, delta {tuple(delta.shape)}, A {tuple(A.shape)}, "
-            f"B {tuple(B.shape)}, C {tuple(C.shape)}; expected (T, D), (T, D), (D, N), (T, N), (T, N)"
+            f"B {tuple(B.shape)}, C {tuple(C.shape)}; "
+            "expected (T, D), (T, D), (D, N) or (D, 1), (T, N), (T, N)"
         )
     if cu.dim() != 1 or cu.numel() < 1:
         raise ValueError("cu_seqlens must be a non-empty 1-D tensor")
@@ -61,7 +64,8 @@ def _check_cu(cu: np.ndarray, total: int) -> None:
 def selective_scan_ref(
     u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, cu_seqlens: Tensor, h0: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Sequential reference. u, delta (T, D); A (D, N); B, C (T, N); h0 (S, D, N) or None.
+    """Sequential reference. u, delta (T, D); A (D, N), or (D, 1) for a decay shared by the N states of a
+    channel; B, C (T, N); h0 (S, D, N) or None.
 
     Returns y (T, D) in u's dtype and the final states (S, D, N) (float32, float64 for float64 inputs).
     """
@@ -70,13 +74,13 @@ def selective_scan_ref(
     bounds = cu_seqlens.tolist()
     _check_cu(np.asarray(bounds), u.shape[0])
     u_, delta_, A_, B_, C_ = (t.to(cd) for t in (u, delta, A, B, C))
-    D, N = A.shape
+    D, N = A.shape[0], B.shape[1]
     ys: list[Tensor] = []
     finals: list[Tensor] = []
     for s in range(len(bounds) - 1):
         h = u.new_zeros((D, N), dtype=cd) if h0 is None else h0[s].to(cd)  # (D, N)
         for t in range(bounds[s], bounds[s + 1]):
-            decay = torch.exp(delta_[t, :, None] * A_)  # (D, N)
+            decay = torch.exp(delta_[t, :, None] * A_)  # (D, N) or (D, 1)
             h = decay * h + (delta_[t] * u_[t])[:, None] * B_[t][None, :]  # (D, N)
             ys.append(h @ C_[t])  # (D,)
         finals.append(h)
@@ -229,7 +233,7 @@ def selective_scan_chunked(
     if chunk_size < 1:
         raise ValueError("chunk_size must be >= 1")
     T, D = u.shape
-    N = A.shape[1]
+    N = B.shape[1]
     S = cu_seqlens.numel() - 1
     cd = _compute_dtype(u, delta, A, B, C)
     h_init = u.new_zeros((S, D, N), dtype=cd) if h0 is None else h0.to(cd)  # (S, D, N)
@@ -240,8 +244,8 @@ def selective_scan_chunked(
     # internal layout: states (.., N, D) so that the long channel dim is the contiguous one
     p2t = lay.packed_to_token
     dp = delta.index_select(0, p2t).to(cd)  # (T, D) packed order
-    At = A.to(cd).t().contiguous()  # (N, D)
-    E = torch.mul(dp[:, None, :], At)  # (T, N, D)
+    At = A.to(cd).t().contiguous()  # (N, D), or (1, D) for a shared decay (broadcast over N below)
+    E = torch.mul(dp[:, None, :], At)  # (T, N, D) or (T, 1, D)
     E = E.exp_() if inplace else E.exp()
     du = dp * u.index_select(0, p2t).to(cd)  # (T, D)
     dBu = du[:, None, :] * B.index_select(0, p2t).to(cd)[:, :, None]  # (T, N, D)
@@ -250,7 +254,7 @@ def selective_scan_chunked(
     h_rank = h_init.transpose(1, 2).index_select(0, lay.rank_seq).contiguous()  # (R, N, D)
     if nf:
         delta_sum = dp.index_select(0, lay.full_positions).view(-1, nf, D).sum(0)  # (NF, D)
-        decay = torch.exp(delta_sum[:, None, :] * At)  # (NF, N, D)
+        decay = torch.exp(delta_sum[:, None, :] * At)  # (NF, N, D) or (NF, 1, D)
         entering_full, entering_last = _carry(
             decay, _local_finals(E_blocks, dBu_blocks, nf), h_rank, lay.seq_counts
         )

@@ -68,9 +68,10 @@ PIECES = [(1,), (2,), (1, 2), (2, 1), (3, 0, 1), (1, 1, 1), (17, 5)]
 
 @pytest.mark.parametrize("impl", list(ScanImpl))
 @pytest.mark.parametrize("pieces", PIECES)
-def test_pieces_with_carried_state_equal_one_call(impl, pieces):
+@pytest.mark.parametrize("shared_decay", [False, True])
+def test_pieces_with_carried_state_equal_one_call(impl, pieces, shared_decay):
     """Two sequences (30 and 9 tokens) fed piece by piece; piece lengths as given, the rest in a last call."""
-    m = _layer(impl, seed=1)
+    m = _layer(impl, seed=1, shared_decay=shared_decay)
     lengths = [30, 9]
     x = torch.randn(sum(lengths), 8, dtype=torch.float64)
     with torch.no_grad():
@@ -89,11 +90,16 @@ def test_pieces_with_carried_state_equal_one_call(impl, pieces):
     torch.testing.assert_close(state.conv, s_full.conv, rtol=1e-12, atol=1e-12)
 
 
-def test_reference_and_chunked_layers_agree_in_outputs_and_gradients():
+@pytest.mark.parametrize("shared_decay", [False, True])
+def test_reference_and_chunked_layers_agree_in_outputs_and_gradients(shared_decay):
     lengths = [50, 3, 0, 17, 1, 33]
     cu = _cu(lengths)
     x = torch.randn(sum(lengths), 8, dtype=torch.float64)
-    layers = [_layer(ScanImpl.REFERENCE, seed=2), _layer(ScanImpl.CHUNKED, seed=2)]
+    layers = [
+        _layer(ScanImpl.REFERENCE, seed=2, shared_decay=shared_decay),
+        _layer(ScanImpl.CHUNKED, seed=2, shared_decay=shared_decay),
+    ]
+    assert layers[0].A_log.shape == ((16, 1) if shared_decay else (16, 4))
     init = MambaState(
         conv=torch.randn(6, 16, 3, dtype=torch.float64), ssm=torch.randn(6, 16, 4, dtype=torch.float64)
     )

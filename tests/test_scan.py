@@ -77,6 +77,20 @@ def test_chunked_matches_reference_float64(lengths, with_h0, chunk_size):
         assert torch.equal(h[empty], args[6][empty])
 
 
+@pytest.mark.parametrize("chunk_size", [4, 32])
+def test_shared_decay_equals_the_decay_repeated_per_state(chunk_size):
+    """A (D, 1) (one decay per channel, broadcast over N) against the same decay written out as (D, N)."""
+    u, delta, A, B, C, cu, h0 = _inputs([31, 0, 70, 5], seed=11)
+    shared = A[:, :1]  # (D, 1)
+    y_ref, h_ref = selective_scan_ref(u, delta, shared.expand_as(A).contiguous(), B, C, cu, h0)
+    for impl in ScanImpl:
+        y, h = selective_scan(u, delta, shared, B, C, cu, h0, impl=impl, chunk_size=chunk_size)
+        torch.testing.assert_close(y, y_ref, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(h, h_ref, rtol=1e-10, atol=1e-10)
+    with pytest.raises(ValueError, match="expected"):
+        selective_scan_ref(u, delta, A[:, :2], B, C, cu, h0)  # neither (D, N) nor (D, 1)
+
+
 @pytest.mark.parametrize("chunk_size", [8, 32])
 def test_chunked_float32_matches_float64_reference(chunk_size):
     args64 = _inputs([200, 33, 1, 0, 64, 90], D=16, N=8, seed=3)
