@@ -82,11 +82,14 @@ def load_checkpoint(
     With `expected`, a checkpoint whose config differs raises CheckpointError naming every differing field.
     """
     payload = read_checkpoint(path)
+    try:  # config fields added after the file was written take their defaults
+        cfg = PHiMConfig.from_dict(payload["config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {path}: config unreadable ({type(e).__name__}: {e})") from e
     if expected is not None:
-        diff = config_diff(payload["config"], plain_config(expected))
+        diff = config_diff(plain_config(cfg), plain_config(expected))
         if diff:
             raise CheckpointError(f"checkpoint {path}: config mismatch: " + "; ".join(diff))
-    cfg = PHiMConfig.from_dict(payload["config"])
     model = PHiM(cfg)
     try:
         result = model.load_state_dict(payload["state_dict"], strict=False)

@@ -41,6 +41,21 @@ def test_mismatch_names_the_field(tmp_path):
         load_checkpoint(path, expected=deeper)
 
 
+def test_fields_added_later_take_their_defaults(tmp_path):
+    """A file written before a config field existed loads, with the field's default; junk configs fail."""
+    path = tmp_path / "old.pt"
+    save_checkpoint(path, PHiM(tiny()))
+    payload = torch.load(path, weights_only=True)
+    del payload["config"]["backbone"]["mamba"]["shared_decay"]  # as written before that field existed
+    torch.save(payload, path)
+    model = load_checkpoint(path, expected=tiny())
+    assert model.cfg == tiny() and model.cfg.backbone.mamba.shared_decay is False
+    payload["config"]["backbone"]["mamba"]["no_such_field"] = 1
+    torch.save(payload, path)
+    with pytest.raises(CheckpointError, match="config unreadable"):
+        load_checkpoint(path)
+
+
 def test_bad_files(tmp_path):
     with pytest.raises(CheckpointError, match="no such file"):
         load_checkpoint(tmp_path / "missing.pt")
