@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 CLASS_NAMES: tuple[str, ...] = ("VEHICLE", "PEDESTRIAN", "CYCLIST")
 
@@ -222,7 +222,15 @@ def tiny() -> PHiMConfig:
     )
 
 
-CONFIGS = {"paper": paper, "tiny": tiny}
+def tiny_fast() -> PHiMConfig:
+    """`tiny` with a lighter Mamba: d_state 4, expand 1, one decay per channel (`shared_decay`). Faster on a
+    CPU (docs/benchmarks.md); no weights ship for it yet."""
+    base = tiny()
+    mamba = replace(base.backbone.mamba, d_state=4, expand=1, shared_decay=True)
+    return replace(base, name="tiny-fast", backbone=replace(base.backbone, mamba=mamba))
+
+
+CONFIGS = {"paper": paper, "tiny": tiny, "tiny-fast": tiny_fast}
 
 
 def get_config(name: str) -> PHiMConfig:

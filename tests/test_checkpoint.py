@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from model.config import PHiMConfig, paper, tiny
+from model.config import PHiMConfig, get_config, paper, tiny
 from model.detector import PHiM
 
 
@@ -26,8 +26,10 @@ def test_roundtrip_is_bit_exact(tmp_path):
 
 
 def test_config_roundtrip():
-    for cfg in (tiny(), paper()):
+    for cfg in (tiny(), paper(), get_config("tiny-fast")):
         assert PHiMConfig.from_dict(cfg.to_dict()) == cfg
+    fast = get_config("tiny-fast").backbone.mamba
+    assert (fast.d_state, fast.expand, fast.shared_decay) == (4, 1, True)
 
 
 def test_mismatch_names_the_field(tmp_path):
