@@ -12,6 +12,8 @@ import math
 from dataclasses import asdict, dataclass, field, replace
 
 CLASS_NAMES: tuple[str, ...] = ("VEHICLE", "PEDESTRIAN", "CYCLIST")
+# point columns in the order the model reads them; a config uses the first `vfe.point_features`
+POINT_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity", "elongation")
 
 
 class ScanImpl(enum.StrEnum):

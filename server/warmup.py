@@ -8,13 +8,12 @@ import time
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
+from model.config import POINT_FIELDS
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 from model.synthetic import synthetic_turn
 
 log = logging.getLogger(__name__)
-
-POINT_FIELDS = ("x", "y", "z", "intensity", "elongation")
 
 
 def warm_up(det: StreamingDetector, sectors: int) -> float:

@@ -50,13 +50,8 @@ def test_a_short_run_writes_checkpoints_and_resumes(tmp_path: Path):
     state["step"] = 2
     torch.save(state, run / "state.pt")
     train(longer, run, resume=True, device="cpu", progress=False)
-    assert [r["step"] for r in _rows(run)] == [
-        "1",
-        "2",
-        "3",
-        "4",
-        "5",
-    ]  # row 3 logged once, by the resumed run
+    steps = [r["step"] for r in _rows(run)]
+    assert steps == ["1", "2", "3", "4", "5"]  # row 3 logged once, by the resumed run
     assert torch.load(run / "state.pt", weights_only=True)["step"] == 5
     second = load_checkpoint(model_path)
     changed = [k for k, v in second.state_dict().items() if not torch.equal(v, first.state_dict()[k])]

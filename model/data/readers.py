@@ -22,13 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from model.config import CLASS_NAMES, PHiMConfig
+from model.config import CLASS_NAMES, POINT_FIELDS, PHiMConfig
 from model.data.labels import labeled_targets
 from model.data.types import GroundTruth, LabeledScan
 
 SCAN_SUFFIXES = (".bin", ".npz")
 DEFAULT_SECTORS = PHiMConfig.sectors_per_turn  # the model's default sectors per turn (4)
-MODEL_FIELDS = ("x", "y", "z", "intensity")
+MODEL_FIELDS = POINT_FIELDS[:4]  # the columns every scan must have
 
 
 class Spin(enum.StrEnum):
@@ -168,7 +168,7 @@ def model_columns(points: np.ndarray, fields: tuple[str, ...]) -> tuple[np.ndarr
 
 def feature_columns(scan: LabeledScan, point_features: int) -> np.ndarray:
     """The scan's points as the model's columns x, y, z, intensity[, elongation] -> (N, point_features)."""
-    names = ("x", "y", "z", "intensity", "elongation")[:point_features]
+    names = POINT_FIELDS[:point_features]
     cols = [
         scan.points[:, scan.fields.index(n)] if n in scan.fields else np.zeros(len(scan.points), np.float32)
         for n in names
