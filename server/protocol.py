@@ -238,9 +238,10 @@ def _points(value: Any, n_fields: int, limits: Limits) -> np.ndarray:
 
 
 def array_to_wire(a: np.ndarray) -> dict[str, Any]:
-    """An array -> {"dtype", "shape", "data"} with explicit little-endian dtype and C-order bytes."""
+    """An array -> {"dtype", "shape", "data"} with explicit little-endian dtype and C-order bytes (a view)."""
     a = np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("<"))
-    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+    data = memoryview(a.reshape(-1).view(np.uint8))  # msgpack packs it as bin without a copy first
+    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": data}
 
 
 def encode_sector(msg: SectorMessage) -> bytes:
