@@ -116,6 +116,35 @@ def eval_cmd(
         typer.echo(f"buffered {b}: LEVEL_1 mean AP {l1['mean']['AP']:.3f} APH {l1['mean']['APH']:.3f}")
 
 
+def diagnose_cmd(
+    checkpoint: Annotated[
+        str, typer.Option("--checkpoint", help="a checkpoint file, or 'default'")
+    ] = "default",
+    data: DataOpt = "sim",
+    scans: Annotated[int, typer.Option(help="scans to look at (sim: how many; files: at most)")] = 50,
+    seed: Annotated[int, typer.Option(help="sim stream of the held-out scans")] = 7,
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Each part of the predicted boxes against the truth, read at the true centre cells, per class."""
+    from model.checkpoint import resolve_checkpoint
+    from model.data.sources import scan_source
+    from model.eval.diagnose import diagnose, format_diagnosis
+    from model.runtime import pick_device, tune_malloc
+
+    tune_malloc()
+    source = scan_source(data, seed, shuffle=False)
+    count = min(scans, len(source))
+    model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
+    result = diagnose(model, range(count), source)
+    if as_json:
+        typer.echo(json.dumps(result, indent=2))
+        return
+    typer.echo(f"checkpoint {ckpt_path}, data {data}, {count} scans")
+    typer.echo(format_diagnosis(result))
+
+
 def register(app: typer.Typer) -> None:
     app.command("train")(train_cmd)
     app.command("eval")(eval_cmd)
+    app.command("diagnose")(diagnose_cmd)

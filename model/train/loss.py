@@ -53,7 +53,7 @@ def focal_loss(logits: Tensor, target: Tensor) -> Tensor:
     return -(pos_loss + neg_loss) / pos.sum().clamp(min=1)
 
 
-def _gather(maps: Tensor, flat: Tensor) -> Tensor:
+def gather_cells(maps: Tensor, flat: Tensor) -> Tensor:
     """maps (B, C, H, W), flat (T,) indices into B * H * W -> (T, C)."""
     b, c, h, w = maps.shape
     return maps.permute(0, 2, 3, 1).reshape(b * h * w, c).index_select(0, flat).float()
@@ -83,12 +83,12 @@ def center_loss(out: HeadOutput, targets: list[BEVTargets], bev: BEVConfig, cfg:
         return LossParts(total, float(hm.detach()), 0.0, 0.0, 0.0, 0.0)
     reg_target = torch.from_numpy(np.concatenate([t.reg for t in targets])).to(dev)  # (T, 8)
     box_target = torch.from_numpy(np.concatenate([t.boxes for t in targets])).to(dev)  # (T, 7)
-    reg = _gather(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)  # (T, 8)
+    reg = gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)  # (T, 8)
     weights = reg.new_tensor(cfg.code_weights)
     reg_loss = ((reg - reg_target).abs() * weights).sum() / n
     boxes = decoded_boxes(reg, flat, w, h, bev)  # (T, 7)
     iou = rotated_iou_3d_aligned(boxes, box_target).clamp(0.0, 1.0)  # (T,)
-    iou_pred = _gather(out.iou, flat)[:, 0]  # (T,)
+    iou_pred = gather_cells(out.iou, flat)[:, 0]  # (T,)
     iou_branch = (iou_pred - (2 * iou.detach() - 1)).abs().mean()
     iou_loss = (1 - iou).mean()
     total = (

@@ -1,0 +1,60 @@
+"""`phim diagnose`: the error measures on constructed boxes, and the command on the shipped model."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from model.eval.diagnose import COLUMNS, box_errors
+
+REPO = Path(__file__).resolve().parents[1]
+TRUE = torch.tensor([[10.0, -5.0, 0.5, 4.0, 2.0, 1.5, 0.3]], dtype=torch.float64)
+
+
+def errors(pred: torch.Tensor) -> dict[str, float]:
+    row = box_errors(pred, TRUE, torch.tensor([0.8], dtype=torch.float64))[0]
+    return dict(zip(COLUMNS, row.tolist(), strict=True))
+
+
+def test_a_perfect_box_has_no_error() -> None:
+    e = errors(TRUE.clone())
+    assert e["iou"] == pytest.approx(1.0) and e["iou_true_yaw"] == pytest.approx(1.0)
+    assert all(e[c] == pytest.approx(0.0, abs=1e-9) for c in COLUMNS[:7])
+    assert e["score"] == pytest.approx(0.8)
+
+
+def test_a_box_turned_round_is_flipped_with_the_axis_right() -> None:
+    pred = TRUE.clone()
+    pred[0, 6] += math.pi
+    e = errors(pred)
+    assert e["flipped"] == 1.0 and e["axis_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert e["iou"] == pytest.approx(1.0)  # IoU cannot see the direction
+
+
+def test_each_part_of_the_error_is_measured_on_its_own() -> None:
+    pred = TRUE.clone()
+    pred[0, :2] += torch.tensor([0.3, 0.4], dtype=torch.float64)  # centre 0.5 m off
+    pred[0, 3] *= 1.25  # 25 % too long
+    pred[0, 6] -= math.radians(100)  # 100 deg off: flipped, axis 80 deg off
+    e = errors(pred)
+    assert e["centre_m"] == pytest.approx(0.5) and e["rel_l"] == pytest.approx(0.25)
+    assert e["axis_deg"] == pytest.approx(80.0) and e["flipped"] == 1.0
+    assert e["iou"] < e["iou_true_yaw"] < 1.0  # with the true yaw only centre and length are off
+
+
+def test_phim_diagnose_on_the_shipped_model() -> None:
+    phim = str(Path(sys.executable).parent / "phim")
+    args = [phim, "diagnose", "--checkpoint", "default", "--scans", "2", "--seed", "7", "--json"]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout)
+    vehicles = result["VEHICLE"]
+    assert vehicles["targets"] >= 5 and vehicles["iou_threshold"] == 0.7
+    assert 0.0 <= vehicles["at_threshold"] <= 1.0 and 0.0 < vehicles["iou"] <= 1.0
+    assert vehicles["centre_m"] < 1.0  # the trained model finds vehicle centres to within a metre
