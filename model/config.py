@@ -23,6 +23,16 @@ class ScanImpl(enum.StrEnum):
     CHUNKED = "chunked"  # packed ragged chunks, closed-form carry between chunks; CPU and CUDA
 
 
+class HeadingCode(enum.StrEnum):
+    """How the head encodes a box's yaw."""
+
+    SIN_COS = "sin_cos"  # (sin yaw, cos yaw), regressed (CenterPoint)
+    # (sin 2 yaw, cos 2 yaw) regressed: the box axis, unambiguous even where front and back look alike; plus a
+    # direction logit (> 0: yaw within 90 degrees of the axis angle in (-90, 90]), as SECOND's direction
+    # classifier
+    AXIS_DIRECTION = "axis_direction"
+
+
 @dataclass(frozen=True)
 class PolarGridConfig:
     """Cylindrical voxel grid (r, theta, z). theta covers [-pi, pi) in `theta_bins` bins."""
@@ -127,6 +137,7 @@ class HeadConfig:
     pre_nms_top_k: int = 4096
     post_nms_top_k: int = 500
     iou_rectifier: tuple[float, ...] = (0.68, 0.71, 0.65)  # score = hm^(1-a) * iou^a, per class
+    heading: HeadingCode = HeadingCode.SIN_COS
 
     def __post_init__(self) -> None:
         n = len(self.class_names)
@@ -167,7 +178,9 @@ class PHiMConfig:
             vfe=VFEConfig(**_tuples(d["vfe"])),
             backbone=BackboneConfig(**_tuples(b)),
             bev=BEVConfig(**_tuples(d["bev"])),
-            head=HeadConfig(**_tuples(d["head"])),
+            head=HeadConfig(
+                **{**_tuples(d["head"]), "heading": HeadingCode(d["head"].get("heading", "sin_cos"))}
+            ),
             sectors_per_turn=d["sectors_per_turn"],
             buffer_sectors=d["buffer_sectors"],
         )
@@ -225,11 +238,16 @@ def tiny() -> PHiMConfig:
 
 
 def tiny_fast() -> PHiMConfig:
-    """`tiny` with a lighter Mamba: d_state 4, expand 1, one decay per channel (`shared_decay`). Faster on a
-    CPU (docs/benchmarks.md); no weights ship for it yet."""
+    """`tiny` with a lighter Mamba (d_state 4, expand 1, one decay per channel: `shared_decay`), faster on a
+    CPU (docs/benchmarks.md), and the axis + direction heading code."""
     base = tiny()
     mamba = replace(base.backbone.mamba, d_state=4, expand=1, shared_decay=True)
-    return replace(base, name="tiny-fast", backbone=replace(base.backbone, mamba=mamba))
+    return replace(
+        base,
+        name="tiny-fast",
+        backbone=replace(base.backbone, mamba=mamba),
+        head=replace(base.head, heading=HeadingCode.AXIS_DIRECTION),
+    )
 
 
 CONFIGS = {"paper": paper, "tiny": tiny, "tiny-fast": tiny_fast}

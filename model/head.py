@@ -7,12 +7,15 @@ A box whose centre falls in that cell is predicted there with
     x = bev.x_min + (c + offset_x) * bev.cell,   y = bev.y_min + (r + offset_y) * bev.cell,
 
 so the offset is in cells, in [0, 1) for a centre inside the cell, measured from the cell's lower-left
-(min x, min y) corner. z is the box centre in metres, log_dim the log of (l, w, h) in metres, rot
-(sin yaw, cos yaw), iou the predicted 3D IoU mapped to [-1, 1] (training target 2 * iou - 1).
+(min x, min y) corner. z is the box centre in metres, log_dim the log of (l, w, h) in metres, rot the yaw
+as `HeadConfig.heading` encodes it (`encode_yaw` / `decode_yaw`), iou the predicted 3D IoU mapped to [-1, 1]
+(training target 2 * iou - 1).
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -20,7 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from model.boxes import Detections
-from model.config import BEVConfig, HeadConfig
+from model.config import BEVConfig, HeadConfig, HeadingCode
 from model.nms import class_nms
 
 HEATMAP_PRIOR_BIAS = -2.19  # log(0.1 / 0.9): initial heatmap probability about 0.1, as CenterPoint
@@ -32,8 +35,37 @@ class HeadOutput:
     offset: Tensor  # (B, 2, H, W) sub-cell centre offset in cells (x, y), from the cell's lower-left corner
     z: Tensor  # (B, 1, H, W) box centre z, metres
     log_dim: Tensor  # (B, 3, H, W) log of (l, w, h) in metres
-    rot: Tensor  # (B, 2, H, W) (sin yaw, cos yaw)
+    rot: Tensor  # (B, R, H, W) sin_cos: (sin yaw, cos yaw); axis_direction: (sin 2yaw, cos 2yaw, dir logit)
     iou: Tensor  # (B, 1, H, W) predicted IoU in [-1, 1] before rectification (target 2 * iou - 1)
+
+
+def rot_channels(code: HeadingCode) -> int:
+    return 2 if code is HeadingCode.SIN_COS else 3
+
+
+def _axis(sin2: Tensor, cos2: Tensor) -> Tensor:
+    return 0.5 * torch.atan2(sin2, cos2)  # the box axis as an angle in [-pi/2, pi/2]
+
+
+def decode_yaw(rot: Sequence[Tensor], code: HeadingCode) -> Tensor:
+    """The head's rot channels (R tensors of one shape) -> yaw in radians (same shape)."""
+    if code is HeadingCode.SIN_COS:
+        sin, cos = rot
+        return torch.atan2(sin, cos)
+    sin2, cos2, direction = rot
+    axis = _axis(sin2, cos2)
+    turned = torch.where(axis > 0, axis - math.pi, axis + math.pi)  # the other way along the axis
+    return torch.where(direction >= 0, axis, turned)
+
+
+def encode_yaw(yaw: Tensor, code: HeadingCode) -> tuple[Tensor, Tensor | None]:
+    """yaw (T,) -> the regressed rot targets (T, 2) and, for axis_direction, the direction targets (T,) in
+    {0, 1} (1: yaw is the axis angle `decode_yaw` computes, 0: the opposite way)."""
+    if code is HeadingCode.SIN_COS:
+        return torch.stack([torch.sin(yaw), torch.cos(yaw)], 1), None
+    sin2, cos2 = torch.sin(2 * yaw), torch.cos(2 * yaw)
+    direction = (torch.cos(yaw - _axis(sin2, cos2)) > 0).to(yaw.dtype)
+    return torch.stack([sin2, cos2], 1), direction
 
 
 def _conv_bn_relu(cin: int, cout: int) -> nn.Sequential:
@@ -69,7 +101,7 @@ class CenterHead(nn.Module):
         self.offset = _branch(ch, hid, 2, n)
         self.z = _branch(ch, hid, 1, n)
         self.log_dim = _branch(ch, hid, 3, n)
-        self.rot = _branch(ch, hid, 2, n)
+        self.rot = _branch(ch, hid, rot_channels(cfg.heading), n)
         self.iou = _branch(ch, hid, 1, n)
         self._init_weights()
 
@@ -131,13 +163,14 @@ def _peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> _Candi
     pix = flat - labels * (h * w)  # (B, T) index into H * W
     row = torch.div(pix, w, rounding_mode="floor")
     col = pix - row * w
-    reg = torch.cat((out.offset, out.z, out.log_dim, out.rot, out.iou), dim=1).float()  # (B, 9, H, W)
-    reg = torch.gather(reg.reshape(b, 9, h * w), 2, pix[:, None, :].expand(b, 9, top))  # (B, 9, T)
-    off_x, off_y, z, log_l, log_w, log_h, sin, cos, iou = reg.unbind(1)  # each (B, T)
+    reg = torch.cat((out.offset, out.z, out.log_dim, out.rot, out.iou), dim=1).float()  # (B, 7 + R, H, W)
+    c = reg.shape[1]
+    reg = torch.gather(reg.reshape(b, c, h * w), 2, pix[:, None, :].expand(b, c, top))  # (B, 7 + R, T)
+    off_x, off_y, z, log_l, log_w, log_h, *rot, iou = reg.unbind(1)  # each (B, T)
     x = bev.x_min + (col.float() + off_x) * bev.cell
     y = bev.y_min + (row.float() + off_y) * bev.cell
     dims = torch.exp(torch.stack((log_l, log_w, log_h), dim=-1))  # (B, T, 3)
-    yaw = torch.atan2(sin, cos)
+    yaw = decode_yaw(rot, cfg.heading)
     boxes = torch.cat((torch.stack((x, y, z), dim=-1), dims, yaw[..., None]), dim=-1)  # (B, T, 7)
     alpha = heat.new_tensor(cfg.iou_rectifier)[labels]  # (B, T)
     iou01 = ((iou + 1.0) * 0.5).clamp(0.0, 1.0)
@@ -150,7 +183,7 @@ def decode(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> list[Detections]
     """Head maps -> one Detections per batch item (float32 boxes, rectified scores, class labels).
 
     Steps: sigmoid heatmap; keep 3x3 local maxima; top cfg.pre_nms_top_k over all classes and cells;
-    dims = exp(log_dim), yaw = atan2(sin, cos); score = hm^(1 - a_c) * ((iou + 1) / 2)^a_c with
+    dims = exp(log_dim), yaw = `decode_yaw`; score = hm^(1 - a_c) * ((iou + 1) / 2)^a_c with
     a_c = cfg.iou_rectifier[c]; drop scores below cfg.score_threshold; class-specific rotated NMS with
     cfg.nms_iou; keep the cfg.post_nms_top_k best. Detections are sorted by descending score.
     """

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from model.boxes import Detections
-from model.config import BEVConfig, HeadConfig, paper, tiny
+from model.config import BEVConfig, HeadConfig, paper, tiny, tiny_fast
 from model.head import HEATMAP_PRIOR_BIAS, CenterHead, HeadOutput, decode, local_maxima
 
 BEV = BEVConfig(x_min=-20.48, x_max=20.48, y_min=-10.24, y_max=10.24, cell=0.32)  # 128 x 64 cells
@@ -72,12 +72,14 @@ def assert_detections(det: Detections, expected: list[Planted], cfg: HeadConfig)
     assert det.labels.tolist() == [p.label for p in expected]
 
 
-@pytest.mark.parametrize(("in_channels", "cfg"), [(32, tiny().head), (384, paper().head)])
-def test_forward_shapes(in_channels: int, cfg: HeadConfig) -> None:
+@pytest.mark.parametrize(
+    ("in_channels", "cfg", "rot"), [(32, tiny().head, 2), (384, paper().head, 2), (32, tiny_fast().head, 3)]
+)
+def test_forward_shapes(in_channels: int, cfg: HeadConfig, rot: int) -> None:
     head = CenterHead(in_channels, cfg)
     out = head(torch.randn(2, in_channels, 12, 20))
     assert out.heatmap.shape == (2, 3, 12, 20)
-    assert out.offset.shape == (2, 2, 12, 20) and out.rot.shape == (2, 2, 12, 20)
+    assert out.offset.shape == (2, 2, 12, 20) and out.rot.shape == (2, rot, 12, 20)
     assert out.z.shape == (2, 1, 12, 20) and out.iou.shape == (2, 1, 12, 20)
     assert out.log_dim.shape == (2, 3, 12, 20)
     assert head.heatmap[-1].bias.detach().eq(HEATMAP_PRIOR_BIAS).all()
@@ -86,6 +88,7 @@ def test_forward_shapes(in_channels: int, cfg: HeadConfig) -> None:
     assert head.shared[0].weight.grad is not None
     dets = decode(head.eval()(torch.randn(1, in_channels, 12, 20)), cfg, tiny().bev)
     assert len(dets) == 1 and torch.isfinite(dets[0].boxes).all()
+    assert dets[0].boxes[:, 6].abs().max() <= math.pi
 
 
 def test_decode_recovers_planted_boxes() -> None:

@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
-from model.config import tiny
+from model.config import HeadingCode, tiny
 from model.data.readers import sector_of_xy
 from model.data.types import GroundTruth, LabeledScan, points_in_boxes
-from model.head import HeadOutput, decode
+from model.head import HeadOutput, decode, decode_yaw, encode_yaw
 from model.synthetic import synthetic_turn
 from model.train.data import AugmentConfig, SampleConfig, augment, make_sample
 from model.train.loss import LossConfig, center_loss, decoded_boxes, focal_loss
@@ -40,7 +41,7 @@ def test_targets_decode_back_to_the_boxes():
     t = build_targets(BOXES, LABELS, 3, CFG.bev, TargetConfig())
     assert len(t.index) == 4
     flat = torch.from_numpy(t.index)
-    boxes = decoded_boxes(torch.from_numpy(t.reg), flat, CFG.bev.nx, CFG.bev.ny, CFG.bev)
+    boxes = decoded_boxes(torch.from_numpy(t.reg), flat, CFG.bev.nx, CFG.bev.ny, CFG.bev, HeadingCode.SIN_COS)
     order = np.argsort(np.hypot(BOXES[:, 0], BOXES[:, 1]))  # targets are kept nearest first
     np.testing.assert_allclose(boxes.numpy(), BOXES[order], atol=1e-4)
     for label, cell in zip(t.labels, t.index, strict=True):  # the peak sits at the centre cell
@@ -48,31 +49,57 @@ def test_targets_decode_back_to_the_boxes():
     assert t.heatmap.max() == 1.0 and (t.heatmap == 1.0).sum() == 4
 
 
-def _perfect_output(targets) -> HeadOutput:
+@pytest.mark.parametrize("code", list(HeadingCode))
+def test_yaw_encodes_and_decodes_all_round_the_circle(code: HeadingCode):
+    yaw = torch.cat([torch.linspace(-math.pi, math.pi, 721, dtype=torch.float64), torch.tensor([0.3, -2.0])])
+    rot, direction = encode_yaw(yaw, code)
+    assert (direction is None) == (code is HeadingCode.SIN_COS)
+    parts = [*rot.unbind(1)] + ([] if direction is None else [direction * 40 - 20])  # logits +-20
+    back = decode_yaw(parts, code)
+    wrapped = torch.remainder(back - yaw + math.pi, 2 * math.pi) - math.pi
+    assert wrapped.abs().max() < 1e-9
+
+
+def _perfect_output(targets, code: HeadingCode) -> HeadOutput:
     """Head maps that predict exactly the targets (logits +-20 from the heatmap, regression at centres)."""
     t = targets
     k, h, w = t.heatmap.shape
     hm = torch.full((1, k, h, w), -20.0)
-    hm.view(1, k, -1)[0, torch.from_numpy(t.labels), torch.from_numpy(t.index)] = 20.0
-    reg = torch.zeros(1, 8, h * w)
-    reg[0, :, torch.from_numpy(t.index)] = torch.from_numpy(t.reg).T
-    reg = reg.view(1, 8, h, w)
+    cells = torch.from_numpy(t.index)
+    hm.view(1, k, -1)[0, torch.from_numpy(t.labels), cells] = 20.0
+    rot, direction = encode_yaw(torch.from_numpy(t.boxes[:, 6]), code)
+    values = [torch.from_numpy(t.reg[:, :6]), rot] + (
+        [] if direction is None else [direction[:, None] * 40 - 20]
+    )
+    values = torch.cat(values, 1)  # (T, 6 + R)
+    reg = torch.zeros(1, values.shape[1], h * w)
+    reg[0, :, cells] = values.T
+    reg = reg.view(1, -1, h, w)
     iou = torch.ones(1, 1, h, w)
-    return HeadOutput(hm, reg[:, 0:2], reg[:, 2:3], reg[:, 3:6], reg[:, 6:8], iou)
+    return HeadOutput(hm, reg[:, 0:2], reg[:, 2:3], reg[:, 3:6], reg[:, 6:], iou)
 
 
-def test_perfect_head_output_decodes_to_the_boxes_and_has_a_small_loss():
+@pytest.mark.parametrize("code", list(HeadingCode))
+def test_perfect_head_output_decodes_to_the_boxes_and_has_a_small_loss(code: HeadingCode):
     t = build_targets(BOXES, LABELS, 3, CFG.bev, TargetConfig())
-    out = _perfect_output(t)
-    det = decode(out, CFG.head, CFG.bev)[0]
+    out = _perfect_output(t, code)
+    det = decode(out, replace(CFG.head, heading=code), CFG.bev)[0]
     order = np.argsort(np.hypot(BOXES[:, 0], BOXES[:, 1]))
     got = det.boxes.numpy()[np.argsort(np.hypot(det.boxes[:, 0].numpy(), det.boxes[:, 1].numpy()))]
     np.testing.assert_allclose(got, BOXES[order], atol=1e-4)
-    parts = center_loss(out, [t], CFG.bev, LossConfig())
+    parts = center_loss(out, [t], CFG.bev, code, LossConfig())
     assert parts.reg < 1e-5 and parts.iou_loss < 1e-3 and parts.mean_iou > 0.999
     noisy = HeadOutput(out.heatmap, out.offset + 0.3, out.z, out.log_dim, out.rot, out.iou)
-    worse = center_loss(noisy, [t], CFG.bev, LossConfig())
+    worse = center_loss(noisy, [t], CFG.bev, code, LossConfig())
     assert worse.reg > 0.1 and worse.mean_iou < 0.9 and float(worse.total) > float(parts.total)
+    turned = out.rot.clone()
+    if code is HeadingCode.SIN_COS:
+        turned = -turned  # (-sin, -cos): yaw + pi
+    else:
+        turned[:, 2] *= -1  # the direction logit
+    flipped = HeadOutput(out.heatmap, out.offset, out.z, out.log_dim, turned, out.iou)
+    parts = center_loss(flipped, [t], CFG.bev, code, LossConfig())
+    assert parts.reg > 0.5 and parts.mean_iou > 0.999  # the wrong way round costs, though the IoU is the same
 
 
 def test_focal_loss_prefers_the_right_heatmap():

@@ -67,8 +67,8 @@ def diagnose_scan(model: PHiM, scan: LabeledScan) -> np.ndarray:
     t = sample.targets[-1]
     _, _, h, w = out.heatmap.shape
     flat = torch.from_numpy(t.index).to(dev)
-    reg = gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)  # (T, 8)
-    pred = decoded_boxes(reg, flat, w, h, model.cfg.bev).cpu().double()  # (T, 7)
+    reg = gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)  # (T, 6 + R)
+    pred = decoded_boxes(reg, flat, w, h, model.cfg.bev, model.cfg.head.heading).cpu().double()  # (T, 7)
     true = torch.from_numpy(t.boxes).double()  # (T, 7)
     labels = torch.from_numpy(t.labels)
     score = torch.sigmoid(gather_cells(out.heatmap, flat)).cpu().gather(1, labels[:, None])[:, 0]  # (T,)

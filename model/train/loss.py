@@ -1,7 +1,9 @@
 """CenterPoint losses for the head's outputs (as OpenPCDet's CenterHead with an IoU branch and IoU loss).
 
 - heatmap: CenterNet's penalty-reduced focal loss (alpha 2, beta 4), normalised by the number of centres;
-- regression: L1 on (offset x, offset y, z, log l, log w, log h, sin yaw, cos yaw) at the centre cells;
+- regression: L1 on (offset x, offset y, z, log l, log w, log h, and the two regressed rot channels) at the
+  centre cells: (sin yaw, cos yaw), or (sin 2 yaw, cos 2 yaw) plus a direction logit under binary
+  cross-entropy (weight `direction_weight`, counted in the `reg` part) for the axis_direction heading code;
 - IoU branch: L1 between the predicted IoU and 2 * IoU(decoded box, target) - 1 (the box detached);
 - IoU loss: 1 - 3D rotated IoU of the decoded box with its target (gradients into the box regression).
 """
@@ -16,8 +18,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from model.boxes import rotated_iou_3d_aligned
-from model.config import BEVConfig
-from model.head import HeadOutput
+from model.config import BEVConfig, HeadingCode
+from model.head import HeadOutput, decode_yaw, encode_yaw
 from model.train.targets import BEVTargets
 
 MAX_LOG_DIM = 4.0  # exp(4) = 55 m: keeps early, untrained dims finite
@@ -30,6 +32,7 @@ class LossConfig:
     iou_branch_weight: float = 1.0
     iou_loss_weight: float = 1.0
     code_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+    direction_weight: float = 0.2  # axis_direction heading only (SECOND's direction classifier: 0.2)
 
 
 @dataclass(frozen=True)
@@ -59,18 +62,22 @@ def gather_cells(maps: Tensor, flat: Tensor) -> Tensor:
     return maps.permute(0, 2, 3, 1).reshape(b * h * w, c).index_select(0, flat).float()
 
 
-def decoded_boxes(reg: Tensor, flat: Tensor, width: int, height: int, bev: BEVConfig) -> Tensor:
-    """reg (T, 8) predicted at flat cells (T,) -> (T, 7) boxes, decoded as `model.head.decode` does."""
+def decoded_boxes(
+    reg: Tensor, flat: Tensor, width: int, height: int, bev: BEVConfig, heading: HeadingCode
+) -> Tensor:
+    """reg (T, 6 + R) predicted at flat cells (T,) -> (T, 7) boxes, decoded as `model.head.decode` does."""
     pix = flat % (width * height)
     row, col = pix // width, pix % width
     x = bev.x_min + (col.float() + reg[:, 0]) * bev.cell
     y = bev.y_min + (row.float() + reg[:, 1]) * bev.cell
     dims = torch.exp(reg[:, 3:6].clamp(max=MAX_LOG_DIM))
-    yaw = torch.atan2(reg[:, 6], reg[:, 7])
+    yaw = decode_yaw(reg[:, 6:].unbind(1), heading)
     return torch.cat([torch.stack([x, y, reg[:, 2]], 1), dims, yaw[:, None]], 1)
 
 
-def center_loss(out: HeadOutput, targets: list[BEVTargets], bev: BEVConfig, cfg: LossConfig) -> LossParts:
+def center_loss(
+    out: HeadOutput, targets: list[BEVTargets], bev: BEVConfig, heading: HeadingCode, cfg: LossConfig
+) -> LossParts:
     """Head outputs of B predictions and their B targets -> the weighted loss and its parts."""
     dev = out.heatmap.device
     _, _, h, w = out.heatmap.shape
@@ -83,10 +90,14 @@ def center_loss(out: HeadOutput, targets: list[BEVTargets], bev: BEVConfig, cfg:
         return LossParts(total, float(hm.detach()), 0.0, 0.0, 0.0, 0.0)
     reg_target = torch.from_numpy(np.concatenate([t.reg for t in targets])).to(dev)  # (T, 8)
     box_target = torch.from_numpy(np.concatenate([t.boxes for t in targets])).to(dev)  # (T, 7)
-    reg = gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)  # (T, 8)
+    reg = gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)  # (T, 6 + R)
+    rot_target, direction = encode_yaw(box_target[:, 6], heading)  # (T, 2), (T,) or None
+    reg_target = torch.cat([reg_target[:, :6], rot_target], 1)  # (T, 8)
     weights = reg.new_tensor(cfg.code_weights)
-    reg_loss = ((reg - reg_target).abs() * weights).sum() / n
-    boxes = decoded_boxes(reg, flat, w, h, bev)  # (T, 7)
+    reg_loss = ((reg[:, :8] - reg_target).abs() * weights).sum() / n
+    if direction is not None:
+        reg_loss = reg_loss + cfg.direction_weight * F.binary_cross_entropy_with_logits(reg[:, 8], direction)
+    boxes = decoded_boxes(reg, flat, w, h, bev, heading)  # (T, 7)
     iou = rotated_iou_3d_aligned(boxes, box_target).clamp(0.0, 1.0)  # (T,)
     iou_pred = gather_cells(out.iou, flat)[:, 0]  # (T,)
     iou_branch = (iou_pred - (2 * iou.detach() - 1)).abs().mean()

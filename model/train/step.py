@@ -37,4 +37,4 @@ class TrainStep(nn.Module):
             targets += s.targets
             first += n
         out = m.predict(scenes)
-        return center_loss(out, targets, m.cfg.bev, self.loss_cfg)
+        return center_loss(out, targets, m.cfg.bev, m.cfg.head.heading, self.loss_cfg)
