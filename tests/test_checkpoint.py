@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from model.config import PHiMConfig, get_config, paper, tiny
+from model.config import HeadingCode, PHiMConfig, get_config, paper, tiny
 from model.detector import PHiM
 
 
@@ -30,6 +30,7 @@ def test_config_roundtrip():
         assert PHiMConfig.from_dict(cfg.to_dict()) == cfg
     fast = get_config("tiny-fast").backbone.mamba
     assert (fast.d_state, fast.expand, fast.shared_decay) == (4, 1, True)
+    assert get_config("tiny-fast").head.heading is HeadingCode.AXIS_DIRECTION
 
 
 def test_mismatch_names_the_field(tmp_path):
@@ -48,10 +49,12 @@ def test_fields_added_later_take_their_defaults(tmp_path):
     path = tmp_path / "old.pt"
     save_checkpoint(path, PHiM(tiny()))
     payload = torch.load(path, weights_only=True)
-    del payload["config"]["backbone"]["mamba"]["shared_decay"]  # as written before that field existed
+    del payload["config"]["backbone"]["mamba"]["shared_decay"]  # as written before these fields existed
+    del payload["config"]["head"]["heading"]
     torch.save(payload, path)
     model = load_checkpoint(path, expected=tiny())
     assert model.cfg == tiny() and model.cfg.backbone.mamba.shared_decay is False
+    assert model.cfg.head.heading is HeadingCode.SIN_COS
     payload["config"]["backbone"]["mamba"]["no_such_field"] = 1
     torch.save(payload, path)
     with pytest.raises(CheckpointError, match="config unreadable"):
