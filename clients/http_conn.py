@@ -96,5 +96,9 @@ def _dropped(conn: http.client.HTTPConnection) -> bool:
     """An idle connection with something to read was closed by the server (or is out of step): unusable."""
     if conn.sock is None:
         return True
+    if hasattr(select, "poll"):  # select.select fails for descriptors >= FD_SETSIZE (1024)
+        poller = select.poll()
+        poller.register(conn.sock, select.POLLIN)
+        return bool(poller.poll(0))
     readable, _, _ = select.select([conn.sock], [], [], 0)
     return bool(readable)
