@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 
 CLASS_NAMES: tuple[str, ...] = ("VEHICLE", "PEDESTRIAN", "CYCLIST")
 # point columns in the order the model reads them; a config uses the first `vfe.point_features`
@@ -205,7 +205,9 @@ def paper() -> PHiMConfig:
 
 
 def tiny() -> PHiMConfig:
-    """Same architecture, sized for real time on a 2-core CPU."""
+    """Same architecture, sized for real time on a 2-core CPU: a light Mamba (d_state 4, expand 1, one decay
+    per channel: `shared_decay`) and the axis + direction yaw code. (Until 2026-11-23 `tiny` had d_state 8,
+    expand 2, a decay per state and the sin/cos yaw code; docs/model-card.md.)"""
     return PHiMConfig(
         name="tiny",
         grid=PolarGridConfig(
@@ -217,7 +219,7 @@ def tiny() -> PHiMConfig:
             down_strides=(1, 2),
             down_kernels=(3, 3),
             frustum_theta_bins=4,
-            mamba=MambaConfig(d_state=8, expand=2),
+            mamba=MambaConfig(d_state=4, expand=1, shared_decay=True),
         ),
         bev=BEVConfig(
             x_min=-51.2,
@@ -232,25 +234,17 @@ def tiny() -> PHiMConfig:
             num_upsample_filters=(32, 32),
         ),
         head=HeadConfig(
-            shared_channels=16, head_channels=16, head_convs=1, pre_nms_top_k=1000, post_nms_top_k=200
+            shared_channels=16,
+            head_channels=16,
+            head_convs=1,
+            pre_nms_top_k=1000,
+            post_nms_top_k=200,
+            heading=HeadingCode.AXIS_DIRECTION,
         ),
     )
 
 
-def tiny_fast() -> PHiMConfig:
-    """`tiny` with a lighter Mamba (d_state 4, expand 1, one decay per channel: `shared_decay`), faster on a
-    CPU (docs/benchmarks.md), and the axis + direction heading code."""
-    base = tiny()
-    mamba = replace(base.backbone.mamba, d_state=4, expand=1, shared_decay=True)
-    return replace(
-        base,
-        name="tiny-fast",
-        backbone=replace(base.backbone, mamba=mamba),
-        head=replace(base.head, heading=HeadingCode.AXIS_DIRECTION),
-    )
-
-
-CONFIGS = {"paper": paper, "tiny": tiny, "tiny-fast": tiny_fast}
+CONFIGS = {"paper": paper, "tiny": tiny}
 
 
 def get_config(name: str) -> PHiMConfig:
