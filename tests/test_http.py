@@ -93,7 +93,7 @@ def metric(url: str, name: str) -> float:
 
 def test_kitti_sectors_over_http_equal_the_model(server, scan, ref):
     replies = [detections(post(server.url, "car-1", i, s)) for i, s in enumerate(scan)]
-    assert [len(r.scores) > 0 for r in replies] == [False, True, True, True]  # the first sees no car
+    assert all(len(r.scores) > 0 for r in replies[1:])  # boxes once the buffer holds the cars ahead
     for i, (r, d) in enumerate(zip(replies, ref, strict=True)):
         assert_same_boxes(r.boxes, r.scores, r.labels, d)
         assert (r.stream_id, r.seq, r.context_sectors, r.gap) == ("car-1", i, i + 1, 0)
