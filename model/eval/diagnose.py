@@ -23,7 +23,7 @@ from model.detector import PHiM
 from model.eval.metrics import MetricsConfig
 from model.phim_block import StreamLayout
 from model.train.data import AugmentConfig, SampleConfig, make_sample
-from model.train.loss import decoded_boxes, gather_cells
+from model.train.loss import decoded_boxes, gather_cells, regression_at
 
 NO_AUGMENT = SampleConfig(
     augment=AugmentConfig(rotate=False, flip=False, scale=(1.0, 1.0)), random_start=False
@@ -61,13 +61,12 @@ def diagnose_scan(model: PHiM, scan: LabeledScan) -> np.ndarray:
     sample = make_sample(scan, model.cfg, NO_AUGMENT, np.random.default_rng(0))
     dev = model.device
     sectors = [s.to(dev) for s in sample.sectors]
-    layout = StreamLayout(torch.zeros(len(sectors), dtype=torch.long, device=dev), 1)
-    enc = model.encode(sectors, layout, model.init_states(1))
+    enc = model.encode(sectors, StreamLayout.single_stream(len(sectors), dev), model.init_states(1))
     out = model.predict([enc.sectors])  # the full turn
     t = sample.targets[-1]
     _, _, h, w = out.heatmap.shape
     flat = torch.from_numpy(t.index).to(dev)
-    reg = gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)  # (T, 6 + R)
+    reg = regression_at(out, flat)  # (T, 6 + R)
     pred = decoded_boxes(reg, flat, w, h, model.cfg.bev, model.cfg.head.heading).cpu().double()  # (T, 7)
     true = torch.from_numpy(t.boxes).double()  # (T, 7)
     labels = torch.from_numpy(t.labels)
@@ -84,7 +83,9 @@ def diagnose(
     """Per class name: target count, the median of each COLUMNS entry (`flipped`: the fraction), and the
     fraction of targets whose IoU reaches the class's AP threshold, with the predicted and the true yaw."""
     thresholds = (metrics or MetricsConfig()).iou_thresholds
-    rows = np.concatenate([diagnose_scan(model, scan_at(i)) for i in indices] or [np.zeros((0, 11))])
+    rows = np.concatenate(
+        [diagnose_scan(model, scan_at(i)) for i in indices] or [np.zeros((0, 1 + len(COLUMNS)))]
+    )
     out: dict[str, dict[str, float]] = {}
     for k, name in enumerate(model.cfg.head.class_names):
         sel = rows[rows[:, 0] == k, 1:]

@@ -1,4 +1,4 @@
-"""`phim train` and `phim eval`."""
+"""`phim train`, `phim eval` and `phim diagnose`."""
 
 from __future__ import annotations
 
@@ -16,6 +16,8 @@ log = logging.getLogger("phim.train")
 
 DataOpt = Annotated[str, typer.Option("--data", help="sim, kitti:DIR, nuscenes:DIR or native:DIR")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto (cuda if present), cpu, cuda, cuda:1")]
+CheckpointOpt = Annotated[str, typer.Option("--checkpoint", help="a checkpoint file, or 'default'")]
+HeldOutSeedOpt = Annotated[int, typer.Option(help="sim stream of the held-out scans")]
 
 
 def train_cmd(
@@ -60,12 +62,10 @@ def train_cmd(
 
 
 def eval_cmd(
-    checkpoint: Annotated[
-        str, typer.Option("--checkpoint", help="a checkpoint file, or 'default'")
-    ] = "default",
+    checkpoint: CheckpointOpt = "default",
     data: DataOpt = "sim",
     scans: Annotated[int, typer.Option(help="scans to evaluate (sim: how many; files: at most)")] = 200,
-    seed: Annotated[int, typer.Option(help="sim stream of the held-out scans")] = 7,
+    seed: HeldOutSeedOpt = 7,
     as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON only")] = False,
     predictions: Annotated[Path | None, typer.Option(help="write predictions (native .npz) here")] = None,
     pictures: Annotated[
@@ -117,12 +117,10 @@ def eval_cmd(
 
 
 def diagnose_cmd(
-    checkpoint: Annotated[
-        str, typer.Option("--checkpoint", help="a checkpoint file, or 'default'")
-    ] = "default",
+    checkpoint: CheckpointOpt = "default",
     data: DataOpt = "sim",
     scans: Annotated[int, typer.Option(help="scans to look at (sim: how many; files: at most)")] = 50,
-    seed: Annotated[int, typer.Option(help="sim stream of the held-out scans")] = 7,
+    seed: HeldOutSeedOpt = 7,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
     device: DeviceOpt = "auto",
 ) -> None:

@@ -62,6 +62,11 @@ def gather_cells(maps: Tensor, flat: Tensor) -> Tensor:
     return maps.permute(0, 2, 3, 1).reshape(b * h * w, c).index_select(0, flat).float()
 
 
+def regression_at(out: HeadOutput, flat: Tensor) -> Tensor:
+    """The regression channels (offset, z, log dims, rot) at flat cells (T,) -> (T, 6 + R)."""
+    return gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)
+
+
 def decoded_boxes(
     reg: Tensor, flat: Tensor, width: int, height: int, bev: BEVConfig, heading: HeadingCode
 ) -> Tensor:
@@ -90,9 +95,9 @@ def center_loss(
         return LossParts(total, float(hm.detach()), 0.0, 0.0, 0.0, 0.0)
     reg_target = torch.from_numpy(np.concatenate([t.reg for t in targets])).to(dev)  # (T, 8)
     box_target = torch.from_numpy(np.concatenate([t.boxes for t in targets])).to(dev)  # (T, 7)
-    reg = gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)  # (T, 6 + R)
+    reg = regression_at(out, flat)  # (T, 6 + R)
     rot_target, direction = encode_yaw(box_target[:, 6], heading)  # (T, 2), (T,) or None
-    reg_target = torch.cat([reg_target[:, :6], rot_target], 1)  # (T, 8)
+    reg_target = torch.cat([reg_target[:, :6], rot_target], 1)  # (T, 8): yaw part in the head's code
     weights = reg.new_tensor(cfg.code_weights)
     reg_loss = ((reg[:, :8] - reg_target).abs() * weights).sum() / n
     if direction is not None:
