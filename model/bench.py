@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from model.detector import PHiM
+from model.scan import resolve_scan
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 
@@ -19,6 +20,7 @@ from model.stream import StreamingDetector
 class ModelBench:
     config: str
     device: str
+    scan: str  # the selective-scan implementation that ran (model/scan.py)
     threads: int
     batch: int  # streams per forward
     sectors_per_turn: int
@@ -79,6 +81,7 @@ def bench_model(
     return ModelBench(
         config=cfg.name,
         device=str(dev) if dev.type == "cpu" else torch.cuda.get_device_name(dev),
+        scan=resolve_scan(cfg.backbone.mamba.scan, dev).value,
         threads=torch.get_num_threads(),
         batch=batch,
         sectors_per_turn=len(sectors),

@@ -46,11 +46,17 @@ def save_checkpoint(path: str | Path, model: PHiM, meta: dict[str, Any] | None =
     tmp.replace(path)
 
 
+# how the selective scan is computed, not what: a checkpoint loads under any of these settings
+EXECUTION_FIELDS = frozenset({"backbone.mamba.scan", "backbone.mamba.chunk_size"})
+
+
 def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
-    """Dotted field names whose values differ between two plain config dicts."""
+    """Dotted field names whose values differ between two plain config dicts (EXECUTION_FIELDS aside)."""
     out = []
     for key in sorted(set(a) | set(b)):
         name = f"{prefix}{key}"
+        if name in EXECUTION_FIELDS:
+            continue
         va, vb = a.get(key), b.get(key)
         if isinstance(va, dict) and isinstance(vb, dict):
             out += config_diff(va, vb, name + ".")

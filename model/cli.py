@@ -10,7 +10,7 @@ from typing import Annotated
 import torch
 import typer
 
-from model.config import CONFIGS, get_config
+from model.config import CONFIGS, ScanImpl, get_config
 from model.runtime import pick_device, tune_malloc
 from model.sectors import load_kitti_bin
 from model.synthetic import synthetic_turn
@@ -65,6 +65,7 @@ def bench_model_cmd(
     turns: Annotated[int, typer.Option(help="timed turns")] = 10,
     threads: Annotated[int, typer.Option(help="torch CPU threads (0: leave as is)")] = 0,
     checkpoint: Annotated[Path | None, typer.Option(help="weights to load (default: fresh init)")] = None,
+    scan: Annotated[ScanImpl | None, typer.Option(help="selective scan (default: the config's)")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
 ) -> None:
     """Time one sector at a time of a scan, with the sector buffer loaded."""
@@ -79,6 +80,8 @@ def bench_model_cmd(
     dev = pick_device(device)
     cfg = get_config(config)
     model = load_checkpoint(checkpoint, cfg, dev) if checkpoint else PHiM(cfg).to(dev)
+    if scan is not None:
+        model.set_scan(scan)
     turn, source = _load_turn(points, fallback_kitti=True)
     result = bench_model(model, turn, batch=batch, turns=turns).to_dict()
     result["input"] = source
@@ -86,8 +89,15 @@ def bench_model_cmd(
         typer.echo(json.dumps(result))
         return
     typer.echo(f"input: {source}")
-    for key in ("config", "device", "threads", "batch", "points_per_sector", "iterations"):
+    for key in ("config", "device", "scan", "threads", "batch", "points_per_sector", "iterations"):
         typer.echo(f"{key:>24}  {result[key]}")
     typer.echo("\n| metric | value |\n|---|---|")
     for key in ("p50_ms", "p90_ms", "mean_ms", "per_sector_p50_ms", "peak_mem_mb", "full_turn_peak_mem_mb"):
         typer.echo(f"| {key} | {result[key]} |")
+
+
+if __name__ == "__main__":  # `python -m model.cli`: these commands without the server's packages (GPU hosts)
+    root = typer.Typer(no_args_is_help=True, add_completion=False)
+    root.add_typer(model_app, name="model")
+    root.add_typer(bench_app, name="bench")
+    root()

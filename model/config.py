@@ -19,8 +19,10 @@ POINT_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity", "elongation")
 class ScanImpl(enum.StrEnum):
     """Which selective-scan implementation the Mamba layers use."""
 
+    AUTO = "auto"  # TRITON on a CUDA device where Triton is installed, else CHUNKED
     REFERENCE = "reference"  # sequential loop per sequence; slow, the ground truth
     CHUNKED = "chunked"  # packed ragged chunks, closed-form carry between chunks; CPU and CUDA
+    TRITON = "triton"  # the chunked algorithm in three Triton kernels; CUDA only
 
 
 class HeadingCode(enum.StrEnum):
@@ -75,7 +77,7 @@ class MambaConfig:
     dt_min: float = 0.001
     dt_max: float = 0.1
     dt_init_floor: float = 1e-4
-    scan: ScanImpl = ScanImpl.CHUNKED
+    scan: ScanImpl = ScanImpl.AUTO
     chunk_size: int = 32
     # False: Mamba-1, one decay per (channel, state), A = -(1..d_state) (S4D-real). True: the d_state states
     # of a channel share one decay (as Mamba-2 shares one per head), A_d = -U(1, 16): less work in the scan

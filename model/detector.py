@@ -8,6 +8,7 @@ Cartesian BEV map and runs the 2D part.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -15,9 +16,9 @@ from torch import Tensor, nn
 
 from model.bev_backbone import BEVBackbone
 from model.boxes import Detections
-from model.config import PHiMConfig
+from model.config import PHiMConfig, ScanImpl
 from model.head import CenterHead, HeadOutput, decode
-from model.mamba import MambaState
+from model.mamba import Mamba, MambaState
 from model.phim_block import PHiMBackbone, StreamLayout
 from model.polar_bev import PolarToBEV
 from model.sparse_tensor import BATCH, SparseTensor
@@ -60,6 +61,14 @@ class PHiM(nn.Module):
 
     def init_states(self, num_streams: int) -> list[MambaState]:
         return self.backbone.init_states(num_streams, self.device)
+
+    def set_scan(self, impl: ScanImpl) -> None:
+        """Run every Mamba layer's selective scan with `impl` (how, not what: the weights still fit)."""
+        mamba = dataclasses.replace(self.cfg.backbone.mamba, scan=impl)
+        self.cfg = dataclasses.replace(self.cfg, backbone=dataclasses.replace(self.cfg.backbone, mamba=mamba))
+        for m in self.modules():
+            if isinstance(m, Mamba):
+                m.cfg = mamba
 
     def encode(self, points: list[Tensor], layout: StreamLayout, states: list[MambaState]) -> Encoded:
         """points[i]: (N_i, C) sector i; layout maps sectors to streams; states: per block, per stream."""

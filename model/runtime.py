@@ -1,9 +1,10 @@
-"""Process-level tuning for CPU inference, applied by the command-line entry points."""
+"""Process-level tuning for CPU inference, applied by the command-line entry points; device choice."""
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import importlib.util
 import logging
 
 import torch
@@ -40,3 +41,8 @@ def pick_device(name: str) -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise RuntimeError(f"device {name!r} requested but CUDA is not available")
     return dev
+
+
+def triton_available(device: torch.device) -> bool:
+    """Whether the Triton kernels (model/*_triton.py) can run on `device`: CUDA and the triton package."""
+    return device.type == "cuda" and importlib.util.find_spec("triton") is not None

@@ -9,7 +9,7 @@ with h_{-1} = h0 of that sequence (zeros when h0 is None). No D skip and no gati
 (D, 1) when the N states of a channel share one decay (`MambaConfig.shared_decay`): then exp(delta_t * A) is
 computed once per channel and broadcast over N.
 
-Two implementations:
+Implementations (`ScanImpl`; AUTO picks TRITON on CUDA where Triton is installed, else CHUNKED):
 - `selective_scan_ref`: a plain sequential loop; slow, the ground truth.
 - `selective_scan_chunked`: every sequence is cut into chunks of `chunk_size` tokens; all chunks are laid
   out position-major without padding (chunks sorted by length, like a PackedSequence); the chunks that are
@@ -18,6 +18,7 @@ Two implementations:
   chunk index (c_{j+1} = exp(A * sum(delta over chunk j)) * c_j + local_final_j, all sequences at once);
   then all chunks are scanned in parallel from their entering states, which gives the outputs and the
   final states. Only exponentials of non-positive numbers appear.
+- `model.scan_triton.selective_scan_triton` (CUDA): the same chunked algorithm as three Triton kernels.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import torch
 from torch import Tensor
 
 from model.config import ScanImpl
+from model.runtime import triton_available
 
 log = logging.getLogger(__name__)
 _announced: set[ScanImpl] = set()
@@ -270,8 +272,15 @@ def selective_scan_chunked(
 
 
 def scan_available(impl: ScanImpl, device: torch.device) -> bool:
-    """Whether `impl` can run on `device` (both current implementations run everywhere)."""
-    return impl in (ScanImpl.REFERENCE, ScanImpl.CHUNKED)
+    """Whether `impl` can run on `device`: TRITON needs a CUDA device and the triton package."""
+    return triton_available(device) if impl is ScanImpl.TRITON else True
+
+
+def resolve_scan(impl: ScanImpl, device: torch.device) -> ScanImpl:
+    """AUTO -> TRITON where it is available, else CHUNKED; any other choice stays as it is."""
+    if impl is not ScanImpl.AUTO:
+        return impl
+    return ScanImpl.TRITON if scan_available(ScanImpl.TRITON, device) else ScanImpl.CHUNKED
 
 
 def selective_scan(
@@ -282,12 +291,16 @@ def selective_scan(
     C: Tensor,
     cu_seqlens: Tensor,
     h0: Tensor | None = None,
-    impl: ScanImpl = ScanImpl.CHUNKED,
+    impl: ScanImpl = ScanImpl.AUTO,
     chunk_size: int = 32,
 ) -> tuple[Tensor, Tensor]:
     """Dispatch to the implementation `impl`; see the module docstring for the contract."""
+    impl = resolve_scan(impl, u.device)
     if not scan_available(impl, u.device):
-        raise RuntimeError(f"selective scan implementation {impl.value!r} is not available on {u.device}")
+        raise RuntimeError(
+            f"selective scan implementation {impl.value!r} is not available on {u.device} "
+            "(triton needs a CUDA device and the triton package)"
+        )
     if impl not in _announced:
         _announced.add(impl)
         log.info("selective scan implementation: %s", impl.value)
@@ -295,4 +308,7 @@ def selective_scan(
         return selective_scan_ref(u, delta, A, B, C, cu_seqlens, h0)
     if impl is ScanImpl.CHUNKED:
         return selective_scan_chunked(u, delta, A, B, C, cu_seqlens, h0, chunk_size)
-    raise RuntimeError(f"unknown selective scan implementation {impl!r}")
+    from model.scan_triton import selective_scan_triton
+
+    _check_inputs(u, delta, A, B, C, cu_seqlens, h0)
+    return selective_scan_triton(u, delta, A, B, C, cu_seqlens, h0, chunk_size)

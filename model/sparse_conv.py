@@ -20,14 +20,19 @@ from __future__ import annotations
 
 import enum
 import itertools
+import logging
 import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
+from model.runtime import triton_available
 from model.sparse_tensor import BATCH, THETA, SparseTensor, Z, linear_key
 from model.sparse_tensor import R as R_AX
+
+log = logging.getLogger(__name__)
+_announced: set[bool] = set()  # which gather_mm_scatter paths have been logged
 
 
 class Plane(enum.Enum):
@@ -223,6 +228,30 @@ def gather_mm_scatter(
     n_dst: int,
     identity_offset: int | None = None,
 ) -> Tensor:
+    """`gather_mm_scatter_torch`'s contract; float32 on CUDA with Triton installed: one fused launch
+    (model/sparse_conv_triton.py), else the torch loop. The first call says in the log which one runs."""
+    fused = (
+        src.dtype == weight.dtype == torch.float32 and src_idx.numel() > 0 and triton_available(src.device)
+    )
+    if fused not in _announced:
+        _announced.add(fused)
+        log.info("sparse conv gather-matmul-scatter: %s", "triton" if fused else "torch")
+    if fused:
+        from model.sparse_conv_triton import gather_mm_scatter_triton
+
+        return gather_mm_scatter_triton(src, weight, src_idx, dst_idx, ptr, n_dst, identity_offset)
+    return gather_mm_scatter_torch(src, weight, src_idx, dst_idx, ptr, n_dst, identity_offset)
+
+
+def gather_mm_scatter_torch(
+    src: Tensor,
+    weight: Tensor,
+    src_idx: Tensor,
+    dst_idx: Tensor,
+    ptr: tuple[int, ...],
+    n_dst: int,
+    identity_offset: int | None = None,
+) -> Tensor:
     """dst[dst_idx[j]] += src[src_idx[j]] @ weight[k] for every pair j of offset k.
 
     src (N_src, C_in), weight (KK, C_in, C_out), src_idx / dst_idx (P,) -> (n_dst, C_out). The pairs of
@@ -230,11 +259,12 @@ def gather_mm_scatter(
     Gathering per offset keeps each gathered block in cache for its matmul.
     """
     ident = identity_offset
-    out = src.new_zeros(n_dst, weight.shape[2]) if ident is None else src @ weight[ident]  # (n_dst, C_out)
+    # products are cast back to src's dtype: under autocast they come out in bf16, the sums stay float32
+    out = src.new_zeros(n_dst, weight.shape[2]) if ident is None else (src @ weight[ident]).to(src.dtype)
     for k in range(weight.shape[0]):
         lo, hi = ptr[k], ptr[k + 1]
         if hi > lo and k != ident:
-            out.index_add_(0, dst_idx[lo:hi], src.index_select(0, src_idx[lo:hi]) @ weight[k])
+            out.index_add_(0, dst_idx[lo:hi], (src.index_select(0, src_idx[lo:hi]) @ weight[k]).to(src.dtype))
     if src_idx.numel() == 0:  # keep the graph connected to the inputs and weights for empty inputs
         out = out + src.sum() * weight.sum() * 0.0
     return out

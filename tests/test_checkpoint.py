@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from model.config import HeadingCode, PHiMConfig, get_config, paper, tiny
+from model.config import HeadingCode, PHiMConfig, ScanImpl, get_config, paper, tiny
 from model.detector import PHiM
 
 
@@ -42,6 +42,18 @@ def test_mismatch_names_the_field(tmp_path):
     deeper = dataclasses.replace(tiny(), backbone=dataclasses.replace(tiny().backbone, d_model=48))
     with pytest.raises(CheckpointError, match=r"backbone\.d_model"):
         load_checkpoint(path, expected=deeper)
+
+
+def test_scan_settings_are_not_a_mismatch(tmp_path):
+    """How the scan is computed (implementation, chunk size) is no part of the model: any setting loads."""
+    cfg = tiny()
+    mamba = dataclasses.replace(cfg.backbone.mamba, scan=ScanImpl.REFERENCE, chunk_size=8)
+    saved = dataclasses.replace(cfg, backbone=dataclasses.replace(cfg.backbone, mamba=mamba))
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, PHiM(saved))
+    model = load_checkpoint(path, expected=tiny())
+    assert model.cfg == saved  # the file's own setting is used
+    assert tiny().backbone.mamba.scan is ScanImpl.AUTO
 
 
 def test_fields_added_later_take_their_defaults(tmp_path):

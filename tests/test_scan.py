@@ -10,7 +10,9 @@ import torch
 
 from model import scan
 from model.config import ScanImpl
-from model.scan import selective_scan, selective_scan_chunked, selective_scan_ref
+from model.scan import scan_available, selective_scan, selective_scan_chunked, selective_scan_ref
+
+CPU_IMPLS = [impl for impl in ScanImpl if scan_available(impl, torch.device("cpu"))]
 
 
 def _cu(lengths: list[int]) -> torch.Tensor:
@@ -83,7 +85,7 @@ def test_shared_decay_equals_the_decay_repeated_per_state(chunk_size):
     u, delta, A, B, C, cu, h0 = _inputs([31, 0, 70, 5], seed=11)
     shared = A[:, :1]  # (D, 1)
     y_ref, h_ref = selective_scan_ref(u, delta, shared.expand_as(A).contiguous(), B, C, cu, h0)
-    for impl in ScanImpl:
+    for impl in CPU_IMPLS:
         y, h = selective_scan(u, delta, shared, B, C, cu, h0, impl=impl, chunk_size=chunk_size)
         torch.testing.assert_close(y, y_ref, rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(h, h_ref, rtol=1e-10, atol=1e-10)
@@ -130,7 +132,7 @@ def test_chunked_gradients_match_reference(with_h0):
         torch.testing.assert_close(g, g_ref, rtol=1e-10, atol=1e-10)
 
 
-@pytest.mark.parametrize("impl", list(ScanImpl))
+@pytest.mark.parametrize("impl", CPU_IMPLS)
 @pytest.mark.parametrize("cut", [1, 31, 32, 33, 100])
 def test_split_with_carried_state_equals_one_call(impl, cut):
     u, delta, A, B, C, _, h0 = _inputs([150, 70], seed=6)
@@ -161,7 +163,7 @@ def test_stable_for_strong_decay():
 def test_no_sequences_and_all_empty():
     for lengths in ([], [0, 0]):
         u, delta, A, B, C, cu, h0 = _inputs(lengths, seed=8)
-        for impl in ScanImpl:
+        for impl in CPU_IMPLS:
             y, h = selective_scan(u, delta, A, B, C, cu, h0, impl=impl)
             assert y.shape == (0, 5) and torch.equal(h, h0)
 
@@ -182,12 +184,11 @@ def test_dispatch_logs_once_and_rejects_unavailable(monkeypatch, caplog):
     args = _inputs([5, 6], seed=10)
     monkeypatch.setattr(scan, "_announced", set())
     with caplog.at_level(logging.INFO, logger="model.scan"):
-        for _ in range(2):
-            y_c, _ = selective_scan(*args, impl=ScanImpl.CHUNKED)
+        for impl in (ScanImpl.AUTO, ScanImpl.CHUNKED):  # AUTO on the CPU is the chunked scan
+            y_c, _ = selective_scan(*args, impl=impl)
         y_r, _ = selective_scan(*args, impl=ScanImpl.REFERENCE)
     messages = [r.getMessage() for r in caplog.records if r.name == "model.scan"]
     assert messages == ["selective scan implementation: chunked", "selective scan implementation: reference"]
     torch.testing.assert_close(y_c, y_r, rtol=1e-10, atol=1e-10)
-    monkeypatch.setattr(scan, "scan_available", lambda impl, device: False)
-    with pytest.raises(RuntimeError, match="not available"):
-        selective_scan(*args, impl=ScanImpl.CHUNKED)
+    with pytest.raises(RuntimeError, match="'triton' is not available on cpu"):  # asked for, so no fallback
+        selective_scan(*args, impl=ScanImpl.TRITON)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+import torch
 import yaml
 from conftest import REPO
 from pydantic import ValidationError
@@ -117,7 +118,7 @@ def test_image_commands_serve_a_sector_and_stop_cleanly(tmp_path: Path):
                 proc.wait()
     text = log.read_text()
     assert rc == 0, text[-3000:]
-    assert "device=cpu" in text and "warm-up" in text
+    assert f"device={'cuda' if torch.cuda.is_available() else 'cpu'}" in text and "warm-up" in text
     assert "stopped by signal 15 after a graceful shutdown" in text and "Traceback" not in text
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import pytest
@@ -9,8 +10,9 @@ import torch
 from conftest import kitti_scan
 
 from model.boxes import Detections
-from model.config import tiny
+from model.config import ScanImpl, tiny
 from model.detector import PHiM
+from model.mamba import Mamba
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 from model.synthetic import synthetic_turn
@@ -133,3 +135,20 @@ def test_reset_starts_fresh(model: PHiM):
     (fresh,), _ = det.step([sectors[0]], [det.init_state()])
     assert after_reset.context_sectors == 1
     assert_same_detections(after_reset.detections, fresh.detections)
+
+
+def test_set_scan_changes_how_not_what(model: PHiM):
+    sectors = split_turn(synthetic_turn(seed=5)[::4], model.cfg.sectors_per_turn)[:2]
+    chunked, _ = stream(StreamingDetector(model), sectors)
+    ref_model = copy.deepcopy(model)
+    ref_model.set_scan(ScanImpl.REFERENCE)
+    layers = [m for m in ref_model.modules() if isinstance(m, Mamba)]
+    assert layers and all(m.cfg.scan is ScanImpl.REFERENCE for m in layers)
+    assert (
+        ref_model.cfg.backbone.mamba.scan is ScanImpl.REFERENCE
+        and model.cfg.backbone.mamba.scan is ScanImpl.AUTO
+    )
+    reference, _ = stream(StreamingDetector(ref_model), sectors)
+    assert len(chunked[-1].detections) > 0
+    for a, b in zip(chunked, reference, strict=True):
+        assert_same_detections(a.detections, b.detections)

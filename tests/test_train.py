@@ -103,6 +103,8 @@ def test_ddp_under_torchrun_on_cpu(tmp_path: Path):
         "0",
         "--threads",
         "1",
+        "--device",
+        "cpu",  # two processes on the CPU, also on a machine with one GPU
         "--no-progress",
     ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}

@@ -37,6 +37,11 @@ class Dist:
             return Dist(0, 1, dev)
         rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
         if dev.type == "cuda":
+            if local >= torch.cuda.device_count():
+                raise RuntimeError(
+                    f"LOCAL_RANK {local} but only {torch.cuda.device_count()} CUDA device(s): "
+                    "start at most one process per GPU (torchrun --nproc_per_node), or pass --device cpu"
+                )
             dev = torch.device("cuda", local)
             torch.cuda.set_device(dev)
         backend = "nccl" if dev.type == "cuda" else "gloo"

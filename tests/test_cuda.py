@@ -1,0 +1,154 @@
+"""On a CUDA device the model computes what it computes on the CPU; skipped where no GPU is present.
+
+CI has no GPU, so these run on a lent GPU machine (scripts/gpu_session.sh). Each compares a CUDA result
+with the CPU (float64 where the op allows) on the same random or real inputs.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import kitti_scan
+from test_scan import _inputs
+from test_sparse_conv import BATCH, SHAPE, random_sparse
+from test_streaming import assert_same_detections, make_model, stream
+
+from model.config import ScanImpl
+from model.scan import scan_available, selective_scan, selective_scan_ref
+from model.sectors import split_turn
+from model.sparse_conv import Plane, SparseConv2d, SparseInverseConv2d, gather_mm_scatter_torch
+from model.sparse_tensor import SparseTensor
+from model.stream import StreamingDetector
+from model.train.distributed import Dist
+from model.train.loop import TrainConfig, train
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+CUDA = torch.device("cuda")
+SCAN_LENGTHS = [[], [0, 0], [1], [0, 3, 0], [31, 32, 33, 64, 65], [300, 0, 1, 129], [4000, 17, 900]]
+FAST_IMPLS = [impl for impl in ScanImpl if impl is not ScanImpl.REFERENCE]
+
+
+def _rel(a: torch.Tensor, ref: torch.Tensor) -> float:
+    a, ref = a.detach().double().cpu(), ref.detach().double().cpu()
+    assert torch.isfinite(a).all()
+    return float((a - ref).norm() / ref.norm().clamp_min(1e-30))
+
+
+@pytest.mark.parametrize("impl", FAST_IMPLS)
+@pytest.mark.parametrize("lengths", SCAN_LENGTHS)
+@pytest.mark.parametrize("shared_decay", [False, True])
+@pytest.mark.parametrize("with_h0", [False, True])
+def test_fast_scan_on_cuda_matches_reference(impl, lengths, shared_decay, with_h0):
+    if not scan_available(impl, CUDA):
+        pytest.fail(f"{impl.value} scan unavailable on this CUDA machine")
+    u, delta, A, B, C, cu, h0 = _inputs(lengths, D=48, N=8, with_h0=with_h0, seed=sum(lengths))
+    if shared_decay:
+        A = A[:, :1]
+    y_ref, h_ref = selective_scan_ref(u, delta, A, B, C, cu, h0)
+    args = [t.float().to(CUDA) if t is not None and t.is_floating_point() else t for t in (u, delta, A, B, C)]
+    h0_dev = None if h0 is None else h0.float().to(CUDA)
+    y, h = selective_scan(*args, cu.to(CUDA), h0_dev, impl=impl, chunk_size=32)
+    assert y.device.type == "cuda" and y.dtype == torch.float32
+    assert _rel(y, y_ref) < 1e-5 and _rel(h, h_ref) < 1e-5
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])  # float32 runs the fused Triton path
+@pytest.mark.parametrize("subm", [False, True])
+@pytest.mark.parametrize("plane", list(Plane))
+def test_sparse_conv_on_cuda_equals_cpu(plane, subm, dtype):
+    x = random_sparse(SHAPE, BATCH, 0.2, 24, seed=5, dtype=dtype)
+    stride = (1, 1) if subm else (2, 2)
+    conv = SparseConv2d(24, 40, 3, stride, plane, bias=True, subm=subm).to(dtype)
+    inv = SparseInverseConv2d(40, 24, 3, plane).to(dtype)
+    y, rb = conv(x)
+    back = inv(y, rb)
+    conv_d, inv_d = copy.deepcopy(conv).to(CUDA), copy.deepcopy(inv).to(CUDA)
+    x_d = SparseTensor(x.features.to(CUDA), x.coords.to(CUDA), x.spatial_shape, x.batch_size)
+    y_d, rb_d = conv_d(x_d)
+    back_d = inv_d(y_d, rb_d)
+    assert torch.equal(y_d.coords.cpu(), y.coords) and torch.equal(back_d.coords.cpu(), x.coords)
+    assert _rel(y_d.features, y.features) < 1e-6 and _rel(back_d.features, back.features) < 1e-6
+
+
+@pytest.mark.parametrize("ident", [None, 4])
+def test_fused_gather_mm_scatter_matches_torch_in_values_and_gradients(ident):
+    from model.sparse_conv_triton import gather_mm_scatter_triton  # triton: only where CUDA is
+
+    x = random_sparse(SHAPE, BATCH, 0.3, 48, seed=9, dtype=torch.float32)
+    conv = SparseConv2d(48, 136, 3, (1, 1), Plane.RZ, subm=True)
+    rb = conv.rulebook(x)
+    assert rb.identity_offset == 4
+    results = []
+    for fn in (gather_mm_scatter_torch, gather_mm_scatter_triton):
+        src = x.features.to(CUDA).requires_grad_()
+        w = conv.weight.detach().to(CUDA).requires_grad_()
+        idx = (rb.in_idx.to(CUDA), rb.out_idx.to(CUDA))
+        out = fn(src, w, *idx, rb.offset_ptr, rb.num_out, ident)
+        out.pow(2).sum().backward()
+        results.append((out.detach(), src.grad, w.grad))
+    for got, ref in zip(results[1], results[0], strict=True):
+        assert _rel(got, ref) < 1e-5
+
+
+@pytest.fixture(scope="module")
+def models():
+    cpu = make_model()
+    return cpu, copy.deepcopy(cpu).to(CUDA)
+
+
+def test_detector_on_cuda_equals_cpu(models):
+    cpu, gpu = models
+    sectors = split_turn(kitti_scan(0), cpu.cfg.sectors_per_turn)
+    on_cpu, _ = stream(StreamingDetector(cpu), sectors)
+    on_gpu, _ = stream(StreamingDetector(gpu), [s.to(CUDA) for s in sectors])
+    assert len(on_cpu[-1].detections) > 0
+    for a, b in zip(on_cpu, on_gpu, strict=True):
+        assert a.context_sectors == b.context_sectors
+        assert_same_detections(b.detections.to(torch.device("cpu")), a.detections, atol=2e-3)
+
+
+def test_streaming_equals_whole_turn_on_cuda(models):
+    _, gpu = models
+    sectors = [s.to(CUDA) for s in split_turn(kitti_scan(1), gpu.cfg.sectors_per_turn)]
+    results, state = stream(StreamingDetector(gpu), sectors)
+    with torch.inference_mode():
+        whole, enc = gpu.forward_turn(sectors)
+    for s_state, ref in zip(state.mamba, enc.states, strict=True):
+        torch.testing.assert_close(s_state.ssm, ref.ssm, rtol=1e-4, atol=1e-5)
+    assert len(whole[0]) > 0
+    assert_same_detections(results[-1].detections, whole[0])
+
+
+def test_batched_equals_alone_on_cuda(models):
+    _, gpu = models
+    det = StreamingDetector(gpu)
+    turns = [split_turn(kitti_scan(i), gpu.cfg.sectors_per_turn) for i in (0, 1)]
+    turns = [[s.to(CUDA) for s in t] for t in turns]
+    alone = [stream(det, t)[0] for t in turns]
+    states = [det.init_state() for _ in turns]
+    for k in range(gpu.cfg.sectors_per_turn):
+        results, states = det.step([turns[1][k], turns[0][k]], states)
+        assert_same_detections(results[0].detections, alone[1][k].detections)
+        assert_same_detections(results[1].detections, alone[0][k].detections)
+
+
+def test_short_training_run_on_cuda_with_bf16_autocast(tmp_path: Path):
+    cfg = TrainConfig(steps=4, checkpoint_every=2, log_every=1, workers=0, amp=True)
+    model_path = train(cfg, tmp_path / "run", device="cuda", progress=False)
+    assert model_path.is_file()
+    with (tmp_path / "run" / "metrics.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 4 and all(torch.isfinite(torch.tensor(float(r["loss"]))) for r in rows)
+
+
+def test_more_ranks_than_gpus_is_a_clear_error(monkeypatch):
+    local = torch.cuda.device_count()
+    monkeypatch.setenv("WORLD_SIZE", str(local + 1))
+    monkeypatch.setenv("RANK", str(local))
+    monkeypatch.setenv("LOCAL_RANK", str(local))
+    with pytest.raises(RuntimeError, match=f"LOCAL_RANK {local} but only {local} CUDA device"):
+        Dist.from_env("cuda")
