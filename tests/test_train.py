@@ -3,21 +3,24 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from model.checkpoint import load_checkpoint
+from model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from model.config import CLASS_NAMES, tiny
 from model.data.sources import SimSource, sim_seed
 from model.data.types import Predictions
+from model.detector import PHiM
 from model.eval.prediction_files import read_predictions, write_predictions
 from model.eval.runner import ScanResult, predict_scan, score
 from model.train.loop import TrainConfig, one_cycle, train
@@ -56,6 +59,24 @@ def test_a_short_run_writes_checkpoints_and_resumes(tmp_path: Path):
     second = load_checkpoint(model_path)
     changed = [k for k, v in second.state_dict().items() if not torch.equal(v, first.state_dict()[k])]
     assert changed  # the resumed step trained
+
+
+def test_init_starts_from_a_checkpoints_weights(tmp_path: Path):
+    torch.manual_seed(3)
+    start = PHiM(tiny())
+    save_checkpoint(tmp_path / "start.pt", start)
+    cfg = TrainConfig(steps=1, lr=1e-9, workers=0, log_every=1, init=str(tmp_path / "start.pt"))
+    trained = load_checkpoint(train(cfg, tmp_path / "run", device="cpu", progress=False))
+    pairs = list(zip(start.parameters(), trained.parameters(), strict=True))
+    assert all(torch.allclose(p0, p1, atol=1e-6) for p0, p1 in pairs)  # one step at lr 1e-9 moves nothing
+    fresh = PHiM(tiny())
+    assert not all(
+        torch.allclose(p0, p2) for p0, p2 in zip(start.parameters(), fresh.parameters(), strict=True)
+    )
+    other = dataclasses.replace(tiny(), buffer_sectors=2)
+    save_checkpoint(tmp_path / "other.pt", PHiM(other))
+    with pytest.raises(CheckpointError, match="buffer_sectors"):
+        train(replace(cfg, init=str(tmp_path / "other.pt")), tmp_path / "run2", device="cpu", progress=False)
 
 
 def test_one_cycle_schedule_equals_torchs_one_cycle_lr():

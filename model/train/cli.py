@@ -32,6 +32,9 @@ def train_cmd(
     checkpoint_every: Annotated[int, typer.Option(help="steps between checkpoints")] = 200,
     log_every: Annotated[int, typer.Option(help="steps between metrics.csv rows")] = 10,
     resume: Annotated[bool, typer.Option("--resume", help="continue the run in --out")] = False,
+    init: Annotated[
+        str, typer.Option(help="start from this checkpoint's weights ('default': the shipped model)")
+    ] = "",
     device: DeviceOpt = "auto",
     threads: Annotated[int, typer.Option(help="torch CPU threads (0: torch's default)")] = 0,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
@@ -39,6 +42,7 @@ def train_cmd(
     """Train a model (streaming, as the paper trains); torchrun runs the same command with DDP."""
     import torch
 
+    from model.checkpoint import DEFAULT_CHECKPOINT
     from model.runtime import tune_malloc
     from model.train.loop import TrainConfig, train
 
@@ -56,6 +60,7 @@ def train_cmd(
         workers=workers,
         checkpoint_every=checkpoint_every,
         log_every=log_every,
+        init=str(DEFAULT_CHECKPOINT) if init == "default" else init,
     )
     path = train(cfg, out, resume=resume, device=device, progress=progress)
     typer.echo(f"trained: {path}")

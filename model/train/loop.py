@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from model.checkpoint import save_checkpoint
+from model.checkpoint import load_checkpoint, save_checkpoint
 from model.config import get_config
 from model.data.sources import scan_source
 from model.detector import PHiM
@@ -52,6 +52,7 @@ class TrainConfig:
     seed: int = 0  # the simulator's scan stream and the augmentation (evaluation uses seed 7)
     workers: int = 1  # data-loader processes per training process
     amp: bool = True  # bf16 autocast on CUDA (CPU runs in float32)
+    init: str = ""  # a checkpoint whose weights start the run (its config must be `config`); "" = fresh init
     checkpoint_every: int = 200
     log_every: int = 10
     sample: SampleConfig = field(default_factory=SampleConfig)
@@ -64,8 +65,9 @@ def _plain(cfg: TrainConfig) -> dict[str, Any]:
 
 def _check_resume(out: Path, cfg: TrainConfig) -> None:
     saved = json.loads((out / "train.json").read_text())
-    mine = _plain(cfg)
-    diff = [k for k in sorted(set(saved) | set(mine)) if k != "steps" and saved.get(k) != mine.get(k)]
+    mine, defaults = _plain(cfg), _plain(TrainConfig())  # a field newer than the run: its default
+    keys = sorted(set(saved) | set(mine))
+    diff = [k for k in keys if k != "steps" and saved.get(k, defaults.get(k)) != mine.get(k)]
     if diff:
         raise ValueError(f"--resume: {out}/train.json differs from this run in {', '.join(diff)}")
 
@@ -182,6 +184,10 @@ def train(
     dist = Dist.from_env(device)
     torch.manual_seed(cfg.seed + dist.rank)
     model = PHiM(get_config(cfg.config)).to(dist.device).train()
+    if cfg.init and not resume:  # a resumed run has its own weights
+        start_from = load_checkpoint(cfg.init, expected=get_config(cfg.config))
+        model.load_state_dict(start_from.state_dict())
+        log.info("starting from the weights of %s", cfg.init)
     step_fn: nn.Module = dist.wrap(TrainStep(model, cfg.loss))
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
