@@ -126,6 +126,8 @@ def test_ddp_under_torchrun_on_cpu(tmp_path: Path):
         "1",
         "--device",
         "cpu",  # two processes on the CPU, also on a machine with one GPU
+        "--direction-weight",
+        "0.5",
         "--no-progress",
     ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -136,6 +138,7 @@ def test_ddp_under_torchrun_on_cpu(tmp_path: Path):
     assert "DDP rank 0 of 2" in done.stderr and "DDP rank 1 of 2" in done.stderr
     rows = _rows(tmp_path / "ddp")
     assert [r["step"] for r in rows] == ["1", "2"]
+    assert json.loads((tmp_path / "ddp" / "train.json").read_text())["loss"]["direction_weight"] == 0.5
     load_checkpoint(tmp_path / "ddp" / "model.pt", expected=tiny())
 
 

@@ -11,6 +11,7 @@ from typing import Annotated
 import typer
 
 from model.config import CONFIGS
+from model.train.loss import LossConfig
 
 log = logging.getLogger("phim.train")
 
@@ -35,6 +36,9 @@ def train_cmd(
     init: Annotated[
         str, typer.Option(help="start from this checkpoint's weights ('default': the shipped model)")
     ] = "",
+    direction_weight: Annotated[
+        float, typer.Option(help="weight of the direction classifier's loss (axis_direction heading code)")
+    ] = LossConfig.direction_weight,
     device: DeviceOpt = "auto",
     threads: Annotated[int, typer.Option(help="torch CPU threads (0: torch's default)")] = 0,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
@@ -61,6 +65,7 @@ def train_cmd(
         checkpoint_every=checkpoint_every,
         log_every=log_every,
         init=str(DEFAULT_CHECKPOINT) if init == "default" else init,
+        loss=LossConfig(direction_weight=direction_weight),
     )
     path = train(cfg, out, resume=resume, device=device, progress=progress)
     typer.echo(f"trained: {path}")
