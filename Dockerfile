@@ -9,6 +9,12 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 
+# Triton (the GPU scan and sparse-conv kernels, model/*_triton.py) builds each kernel's launcher with the
+# system C compiler at first use; the runtime base image has none (without one the torch paths run instead).
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends gcc libc6-dev \
+ && rm -rf /var/lib/apt/lists/*
+
 WORKDIR /opt/phim
 COPY pyproject.toml README.md ./
 COPY model ./model

@@ -6,6 +6,8 @@ import ctypes
 import ctypes.util
 import importlib.util
 import logging
+import os
+import shutil
 
 import torch
 
@@ -44,5 +46,11 @@ def pick_device(name: str) -> torch.device:
 
 
 def triton_available(device: torch.device) -> bool:
-    """Whether the Triton kernels (model/*_triton.py) can run on `device`: CUDA and the triton package."""
-    return device.type == "cuda" and importlib.util.find_spec("triton") is not None
+    """Whether the Triton kernels (model/*_triton.py) can run on `device`: CUDA, the triton package, and a
+    C compiler (Triton builds each kernel's launcher with one at first use; slim images often lack it)."""
+    return device.type == "cuda" and importlib.util.find_spec("triton") is not None and has_c_compiler()
+
+
+def has_c_compiler() -> bool:
+    """$CC, gcc or clang on the PATH: the compilers Triton looks for."""
+    return any(shutil.which(c) for c in (os.environ.get("CC", ""), "gcc", "clang") if c)

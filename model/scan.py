@@ -299,7 +299,7 @@ def selective_scan(
     if not scan_available(impl, u.device):
         raise RuntimeError(
             f"selective scan implementation {impl.value!r} is not available on {u.device} "
-            "(triton needs a CUDA device and the triton package)"
+            "(triton needs a CUDA device, the triton package and a C compiler: gcc, clang or $CC)"
         )
     if impl not in _announced:
         _announced.add(impl)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 
 import pytest
 import torch
 
-from model import scan
+from model import runtime, scan
 from model.config import ScanImpl
 from model.scan import scan_available, selective_scan, selective_scan_chunked, selective_scan_ref
 
@@ -178,6 +179,15 @@ def test_invalid_inputs_raise():
         selective_scan_chunked(u, delta[:, :3], A, B, C, _cu([4, 4]))
     with pytest.raises(ValueError, match="h0"):
         selective_scan_chunked(u, delta, A, B, C, _cu([4, 4]), torch.zeros(3, 5, 3, dtype=u.dtype))
+
+
+def test_triton_needs_cuda_and_a_c_compiler(monkeypatch, tmp_path):
+    monkeypatch.delenv("CC", raising=False)
+    monkeypatch.setenv("PATH", str(tmp_path))  # no gcc, no clang
+    assert not runtime.has_c_compiler()
+    monkeypatch.setenv("CC", sys.executable)  # any executable stands in for one
+    assert runtime.has_c_compiler()
+    assert not runtime.triton_available(torch.device("cpu"))
 
 
 def test_dispatch_logs_once_and_rejects_unavailable(monkeypatch, caplog):

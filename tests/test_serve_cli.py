@@ -62,6 +62,7 @@ def test_dockerfile_essentials():
     runs = " ".join(rest for w, rest in ins if w == "RUN")
     assert '".[server]"' in runs and "torch-constraint" in runs  # never reinstalls the base image's torch
     assert "python -m server.default_model --out" in runs  # weights inside
+    assert re.search(r"apt-get install .*\bgcc\b", runs)  # Triton builds its kernel launchers with it
     health = dict(ins)["HEALTHCHECK"]
     assert json.loads(health.split("CMD", 1)[1]) == ["python", "-m", "server.healthcheck"]
     cmd = json.loads(dict(ins)["CMD"])  # exec form (a JSON array), so SIGTERM reaches phim directly
