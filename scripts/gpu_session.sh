@@ -14,16 +14,22 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | 
     echo "CUDA TESTS FAILED (benchmarks follow anyway)"
 phim() { "$py" -m model.cli "$@"; }
 phim model info --config paper --json >"$out/info_paper.json"
-rows=()
 for run in "paper 1 auto" "paper 8 auto" "paper 1 chunked" "tiny 1 auto" "tiny 8 auto"; do
     set -- $run
     phim bench model --config "$1" --batch "$2" --scan "$3" --device cuda --turns 20 --json \
         >"$out/bench_$1_b$2_$3.json"
-    rows+=("$("$py" -c "import json,sys; r=json.load(open(sys.argv[1])); print('| %s | %s | %d | %s | %s | %s | %s | %s |' % (r['config'], r['scan'], r['batch'], r['p50_ms'], r['p90_ms'], r['per_sector_p50_ms'], r['peak_mem_mb'], r['full_turn_peak_mem_mb']))" "$out/bench_$1_b$2_$3.json")")
 done
 echo
 cat "$out/gpu.txt"
-"$py" -c "import json,sys; r=json.load(open(sys.argv[1])); print('paper: params', r['params'], 'gflops', r['gflops'])" "$out/info_paper.json"
-echo "| config | scan | streams | p50 ms | p90 ms | per-sector p50 ms | peak MB | full-turn peak MB |"
-echo "|---|---|---|---|---|---|---|---|"
-printf '%s\n' "${rows[@]}"
+"$py" - "$out" <<'PY'
+import json, pathlib, sys
+out = pathlib.Path(sys.argv[1])
+info = json.loads((out / "info_paper.json").read_text())
+print("paper: params", info["params"], "gflops", info["gflops"])
+print("| config | scan | streams | p50 ms | p90 ms | per-sector p50 ms | peak MB | full-turn peak MB |")
+print("|---|---|---|---|---|---|---|---|")
+for f in sorted(out.glob("bench_*.json")):
+    r = json.loads(f.read_text())
+    keys = ("config", "scan", "batch", "p50_ms", "p90_ms", "per_sector_p50_ms", "peak_mem_mb", "full_turn_peak_mem_mb")
+    print("| " + " | ".join(str(r[k]) for k in keys) + " |")
+PY
