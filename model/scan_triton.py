@@ -25,6 +25,8 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
+from model.runtime import grads_by_recompute
+
 
 @triton.jit
 def _chunk_kernel(
@@ -154,15 +156,12 @@ class TritonScan(torch.autograd.Function):
         from model.scan import selective_scan_chunked
 
         u, delta, A, B, C, cu, h0 = ctx.saved_tensors
-        inputs = [t.detach().requires_grad_(t.requires_grad) for t in (u, delta, A, B, C)]
-        h0_in = None if h0 is None else h0.detach().requires_grad_(h0.requires_grad)
-        with torch.enable_grad():
-            y, final = selective_scan_chunked(*inputs, cu, h0_in, ctx.chunk)
-            wrt = [t for t in (*inputs, h0_in) if t is not None and t.requires_grad]
-            grads = iter(torch.autograd.grad((y, final), wrt, (gy, gfinal), allow_unused=True))
-        out = [next(grads) if t.requires_grad else None for t in inputs]
-        g_h0 = next(grads) if h0_in is not None and h0_in.requires_grad else None
-        return (*out, None, g_h0, None)
+
+        def twin(u, delta, A, B, C, h0):
+            return selective_scan_chunked(u, delta, A, B, C, cu, h0, ctx.chunk)
+
+        g_u, g_delta, g_A, g_B, g_C, g_h0 = grads_by_recompute(twin, (u, delta, A, B, C, h0), (gy, gfinal))
+        return g_u, g_delta, g_A, g_B, g_C, None, g_h0, None
 
 
 def selective_scan_triton(

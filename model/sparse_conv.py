@@ -227,12 +227,20 @@ def gather_mm_scatter(
     ptr: tuple[int, ...],
     n_dst: int,
     identity_offset: int | None = None,
+    fused: bool | None = None,
 ) -> Tensor:
-    """`gather_mm_scatter_torch`'s contract; float32 on CUDA with Triton installed: one fused launch
-    (model/sparse_conv_triton.py), else the torch loop. The first call says in the log which one runs."""
-    fused = (
-        src.dtype == weight.dtype == torch.float32 and src_idx.numel() > 0 and triton_available(src.device)
-    )
+    """dst[dst_idx[j]] += src[src_idx[j]] @ weight[k] for every pair j of offset k.
+
+    src (N_src, C_in), weight (KK, C_in, C_out), src_idx / dst_idx (P,) -> (n_dst, C_out). The pairs of
+    `identity_offset`, if given, must be (i, i) for every row (N_src == n_dst): that offset is one matmul.
+    Gathering per offset keeps each gathered block in cache for its matmul.
+
+    `fused` (None: wherever it can run, i.e. float32 on CUDA with Triton): one Triton launch for all offsets
+    (model/sparse_conv_triton.py) instead of this loop, its plain-torch twin. The log says which runs.
+    """
+    if fused is None:
+        fused = triton_available(src.device) and src.dtype == weight.dtype == torch.float32
+    fused = fused and src_idx.numel() > 0  # no pairs: nothing to launch
     if fused not in _announced:
         _announced.add(fused)
         log.info("sparse conv gather-matmul-scatter: %s", "triton" if fused else "torch")
@@ -240,24 +248,6 @@ def gather_mm_scatter(
         from model.sparse_conv_triton import gather_mm_scatter_triton
 
         return gather_mm_scatter_triton(src, weight, src_idx, dst_idx, ptr, n_dst, identity_offset)
-    return gather_mm_scatter_torch(src, weight, src_idx, dst_idx, ptr, n_dst, identity_offset)
-
-
-def gather_mm_scatter_torch(
-    src: Tensor,
-    weight: Tensor,
-    src_idx: Tensor,
-    dst_idx: Tensor,
-    ptr: tuple[int, ...],
-    n_dst: int,
-    identity_offset: int | None = None,
-) -> Tensor:
-    """dst[dst_idx[j]] += src[src_idx[j]] @ weight[k] for every pair j of offset k.
-
-    src (N_src, C_in), weight (KK, C_in, C_out), src_idx / dst_idx (P,) -> (n_dst, C_out). The pairs of
-    `identity_offset`, if given, must be (i, i) for every row (N_src == n_dst): that offset is one matmul.
-    Gathering per offset keeps each gathered block in cache for its matmul.
-    """
     ident = identity_offset
     # products are cast back to src's dtype: under autocast they come out in bf16, the sums stay float32
     out = src.new_zeros(n_dst, weight.shape[2]) if ident is None else (src @ weight[ident]).to(src.dtype)

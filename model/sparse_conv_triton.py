@@ -1,5 +1,5 @@
 """Gather -> matmul -> scatter of a sparse conv in one Triton launch (CUDA): the fast twin of
-`sparse_conv.gather_mm_scatter_torch`.
+`sparse_conv.gather_mm_scatter` (fused=False).
 
 The rule book's pairs are grouped by kernel offset. They are cut into blocks of BLOCK_P pairs that never
 straddle two offsets (a table made on the host from the offsets' pair counts, which the host already
@@ -18,6 +18,8 @@ import torch
 import triton
 import triton.language as tl
 from torch import Tensor
+
+from model.runtime import grads_by_recompute
 
 BLOCK_P = 64  # pairs per program
 
@@ -94,22 +96,21 @@ class TritonGatherMMScatter(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_out):  # type: ignore[override]
-        from model.sparse_conv import gather_mm_scatter_torch
+        from model.sparse_conv import gather_mm_scatter
 
         src, weight, src_idx, dst_idx = ctx.saved_tensors
-        src_in = src.detach().requires_grad_(src.requires_grad)
-        w_in = weight.detach().requires_grad_(weight.requires_grad)
-        with torch.enable_grad():
-            out = gather_mm_scatter_torch(src_in, w_in, src_idx, dst_idx, ctx.ptr, ctx.n_dst, ctx.ident)
-            wrt = [t for t in (src_in, w_in) if t.requires_grad]
-            grads = iter(torch.autograd.grad(out, wrt, g_out, allow_unused=True))
-        g_src = next(grads) if src_in.requires_grad else None
-        g_w = next(grads) if w_in.requires_grad else None
+
+        def twin(src, weight):
+            return gather_mm_scatter(
+                src, weight, src_idx, dst_idx, ctx.ptr, ctx.n_dst, ctx.ident, fused=False
+            )
+
+        g_src, g_w = grads_by_recompute(twin, (src, weight), g_out)
         return g_src, g_w, None, None, None, None, None
 
 
 def gather_mm_scatter_triton(
     src: Tensor, weight: Tensor, src_idx: Tensor, dst_idx: Tensor, ptr, n_dst: int, ident: int | None
 ) -> Tensor:
-    """Same contract as `sparse_conv.gather_mm_scatter_torch`, for float32 CUDA tensors."""
+    """Same contract as `sparse_conv.gather_mm_scatter` (fused=False), for float32 CUDA tensors."""
     return TritonGatherMMScatter.apply(src, weight, src_idx, dst_idx, ptr, n_dst, ident)

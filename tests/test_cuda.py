@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import functools
 from pathlib import Path
 
 import pytest
@@ -20,7 +21,7 @@ from test_streaming import assert_same_detections, make_model, stream
 from model.config import ScanImpl
 from model.scan import scan_available, selective_scan, selective_scan_ref
 from model.sectors import split_turn
-from model.sparse_conv import Plane, SparseConv2d, SparseInverseConv2d, gather_mm_scatter_torch
+from model.sparse_conv import Plane, SparseConv2d, SparseInverseConv2d, gather_mm_scatter
 from model.sparse_tensor import SparseTensor
 from model.stream import StreamingDetector
 from model.train.distributed import Dist
@@ -83,7 +84,8 @@ def test_fused_gather_mm_scatter_matches_torch_in_values_and_gradients(ident):
     rb = conv.rulebook(x)
     assert rb.identity_offset == 4
     results = []
-    for fn in (gather_mm_scatter_torch, gather_mm_scatter_triton):
+    torch_twin = functools.partial(gather_mm_scatter, fused=False)
+    for fn in (torch_twin, gather_mm_scatter_triton):
         src = x.features.to(CUDA).requires_grad_()
         w = conv.weight.detach().to(CUDA).requires_grad_()
         idx = (rb.in_idx.to(CUDA), rb.out_idx.to(CUDA))
