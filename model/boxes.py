@@ -168,23 +168,23 @@ def near_pairs(a: Tensor, b: Tensor | None = None) -> Iterator[tuple[Tensor, Ten
 
     a (N, 7), b (M, 7) -> chunks (ia (P,), ib (P,)) int64 of all such pairs, each chunk from at most
     _PAIR_CHUNK candidates. With b None: each unordered pair of distinct boxes of a once, as ia < ib.
-    Sweep along x: boxes sorted by x, each box looks only at those whose x lies within reach.
+    Sweep along x over b's circles sorted by their left end (x - r): a row looks only at the circles whose
+    left end lies within its reach. Self pairs: b's circles j after i in that order with left_j <= x_i + r_i
+    (exactly the x-overlapping pairs); a against b: left ends in [x_a - r_a - 2 max r_b, x_a + r_a].
     """
     self_pairs = b is None
     b = a if b is None else b
     if a.shape[0] == 0 or b.shape[0] == 0:
         return
     radius_a, radius_b = 0.5 * torch.hypot(a[:, 3], a[:, 4]), 0.5 * torch.hypot(b[:, 3], b[:, 4])
-    xb, order_b = torch.sort(b[:, 0].contiguous())  # (M,)
-    if self_pairs:  # rows in x order; look right only, so every unordered pair comes once
-        rows_idx, xa = order_b, xb
+    left_b, order_b = torch.sort((b[:, 0] - radius_b).contiguous())  # (M,)
+    if self_pairs:  # rows in left-end order; look right only, so every unordered pair comes once
+        rows_idx = order_b
         lo = torch.arange(1, a.shape[0] + 1, device=a.device)  # (N,)
     else:
-        rows_idx, xa = torch.arange(a.shape[0], device=a.device), a[:, 0]
-    reach = radius_a[rows_idx] + radius_b.max()  # (N,)
-    if not self_pairs:
-        lo = torch.searchsorted(xb, xa - reach)
-    hi = torch.searchsorted(xb, xa + reach, right=True)  # (N,)
+        rows_idx = torch.arange(a.shape[0], device=a.device)
+        lo = torch.searchsorted(left_b, a[:, 0] - radius_a - 2 * radius_b.max())
+    hi = torch.searchsorted(left_b, a[rows_idx, 0] + radius_a[rows_idx], right=True)  # (N,)
     counts = (hi - lo).clamp_min(0)  # (N,) candidates of each row
     for r0, r1, total in _row_blocks(counts.cpu()):
         c = counts[r0:r1]
@@ -199,6 +199,25 @@ def near_pairs(a: Tensor, b: Tensor | None = None) -> Iterator[tuple[Tensor, Ten
         if self_pairs:
             ia, ib = torch.minimum(ia, ib), torch.maximum(ia, ib)
         yield ia, ib
+
+
+def iou_bev_upper_bound(a: Tensor, b: Tensor) -> Tensor:
+    """A cheap upper bound of the BEV IoU of aligned pairs: (P, 7), (P, 7) -> (P,).
+
+    Each box lies inside its axis-aligned bounding rectangle, so the intersection is at most the overlap of
+    those rectangles and at most the smaller area; IoU = I / (A + B - I) grows with I.
+    """
+
+    def half_extents(x: Tensor) -> tuple[Tensor, Tensor]:
+        cos, sin = torch.cos(x[:, 6]).abs(), torch.sin(x[:, 6]).abs()
+        return 0.5 * (x[:, 3] * cos + x[:, 4] * sin), 0.5 * (x[:, 3] * sin + x[:, 4] * cos)
+
+    (hxa, hya), (hxb, hyb) = half_extents(a), half_extents(b)
+    ox = torch.minimum(a[:, 0] + hxa, b[:, 0] + hxb) - torch.maximum(a[:, 0] - hxa, b[:, 0] - hxb)
+    oy = torch.minimum(a[:, 1] + hya, b[:, 1] + hyb) - torch.maximum(a[:, 1] - hya, b[:, 1] - hyb)
+    area_a, area_b = a[:, 3] * a[:, 4], b[:, 3] * b[:, 4]
+    inter = torch.minimum(ox.clamp_min(0.0) * oy.clamp_min(0.0), torch.minimum(area_a, area_b))
+    return _safe_ratio(inter, area_a + area_b - inter)
 
 
 def _row_blocks(counts: Tensor) -> Iterator[tuple[int, int, int]]:

@@ -116,17 +116,42 @@ class CenterHead(nn.Module):
         assert isinstance(last, nn.Conv2d) and last.bias is not None
         nn.init.constant_(last.bias, HEATMAP_PRIOR_BIAS)
 
+    def branches(self) -> tuple[nn.Sequential, ...]:
+        """The six output branches in HeadOutput's field order."""
+        return (self.heatmap, self.offset, self.z, self.log_dim, self.rot, self.iou)
+
     def forward(self, bev: Tensor) -> HeadOutput:
-        """bev (B, C, H, W) -> HeadOutput with maps of the same H, W."""
+        """bev (B, C, H, W) -> HeadOutput with maps of the same H, W.
+
+        Every branch starts with a 3x3 conv on the same input, so those six convs run as one conv with
+        their weights stacked (one pass over the input instead of six; `forward_per_branch` is the twin).
+        """
         x = self.shared(bev)  # (B, shared_channels, H, W)
-        return HeadOutput(
-            heatmap=self.heatmap(x),
-            offset=self.offset(x),
-            z=self.z(x),
-            log_dim=self.log_dim(x),
-            rot=self.rot(x),
-            iou=self.iou(x),
-        )
+        entries = [_entry_conv(b) for b in self.branches()]
+        bias = [c.bias if c.bias is not None else c.weight.new_zeros(c.out_channels) for c in entries]
+        y = F.conv2d(x, torch.cat([c.weight for c in entries]), torch.cat(bias), padding=1)  # (B, sum, H, W)
+        parts = y.split([c.out_channels for c in entries], dim=1)
+        return HeadOutput(*(_after_entry(b, p) for b, p in zip(self.branches(), parts, strict=True)))
+
+    def forward_per_branch(self, bev: Tensor) -> HeadOutput:
+        """The same as `forward`, each branch on its own (the plain form, for parity tests)."""
+        x = self.shared(bev)
+        return HeadOutput(*(b(x) for b in self.branches()))
+
+
+def _entry_conv(branch: nn.Sequential) -> nn.Conv2d:
+    first = branch[0]
+    conv = first[0] if isinstance(first, nn.Sequential) else first
+    assert isinstance(conv, nn.Conv2d)
+    return conv
+
+
+def _after_entry(branch: nn.Sequential, y: Tensor) -> Tensor:
+    """Run `branch` on `y`, the output of its entry conv: the rest of its first layer, then the others."""
+    first = branch[0]
+    if isinstance(first, nn.Sequential):  # conv + BN + ReLU
+        y = first[1:](y)
+    return branch[1:](y)
 
 
 def local_maxima(hm: Tensor) -> Tensor:

@@ -2,8 +2,9 @@
 class-specific NMS for Waymo: one IoU threshold per class, classes never suppress each other).
 
 A box is suppressed when its BEV IoU with a kept box of higher score is strictly greater than the threshold.
-The IoU is computed once, only for the pairs that can exceed the threshold (circumscribed circles overlap and
-area ratio above it); the greedy pass itself is tensor ops on the boolean overlap matrix.
+The IoU is computed once, only for the pairs that can exceed the threshold (circumscribed circles overlap,
+area ratio and an axis-aligned upper bound of the IoU above it); the greedy pass itself is tensor ops on the
+boolean overlap matrix.
 """
 
 from __future__ import annotations
@@ -13,8 +14,10 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from model.boxes import near_pairs, rotated_iou_bev_aligned
+from model.boxes import iou_bev_upper_bound, near_pairs, rotated_iou_bev_aligned
 
+_BOUND_SLACK = 1e-4  # pairs within this of the threshold by the upper bound get the exact IoU
+_PREFIX = 2  # first try NMS on the best _PREFIX x max_out candidates only
 _BLOCK = 64  # candidates resolved together in the greedy pass (small: cheap, unthreaded ops)
 
 
@@ -29,6 +32,9 @@ def _overlap_matrix(boxes: Tensor, thresholds: Tensor, groups: Tensor) -> Tensor
         # IoU <= min(area) / max(area): boxes of very different size cannot exceed the threshold
         small, large = torch.minimum(area[ia], area[ib]), torch.maximum(area[ia], area[ib])
         fit = (groups[ia] == groups[ib]) & (small >= threshold * large)
+        ia, ib, threshold = ia[fit], ib[fit], threshold[fit]
+        # the exact IoU only where a cheap upper bound leaves it possible (slack for float rounding)
+        fit = iou_bev_upper_bound(boxes[ia], boxes[ib]) > threshold - _BOUND_SLACK
         ia, ib, threshold = ia[fit], ib[fit], threshold[fit]
         hit = rotated_iou_bev_aligned(boxes[ia], boxes[ib]) > threshold  # (P',)
         over[ia[hit], ib[hit]] = True
@@ -85,8 +91,15 @@ def _grouped_nms(boxes: Tensor, scores: Tensor, thresholds: Tensor, groups: Tens
     if boxes.shape[0] == 0 or max_out <= 0:
         return torch.zeros(0, dtype=torch.int64, device=boxes.device)
     order = torch.argsort(scores, descending=True, stable=True)  # (N,)
-    over = _overlap_matrix(boxes[order], thresholds[order], groups[order])  # (N, N)
-    return order[_greedy_keep(over, max_out)][:max_out]
+    # greedy decisions on a score-ordered prefix do not depend on what follows it: when the best
+    # _PREFIX x max_out candidates already keep max_out boxes, the rest need no overlap test at all
+    m = min(order.shape[0], _PREFIX * max_out)
+    while True:
+        head = order[:m]
+        keep = _greedy_keep(_overlap_matrix(boxes[head], thresholds[head], groups[head]), max_out)  # (m,)
+        if m == order.shape[0] or int(keep.sum()) >= max_out:
+            return head[keep][:max_out]
+        m = order.shape[0]
 
 
 def class_nms(

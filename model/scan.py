@@ -266,7 +266,7 @@ def selective_scan_chunked(
     H_blocks = _scan_all(E_blocks, dBu_blocks, h_in, inplace)
     H = dBu if inplace else torch.cat(H_blocks)  # (T, N, D) packed
     Cp = C.index_select(0, p2t).to(cd)  # (T, N)
-    y = torch.bmm(Cp[:, None, :], H).squeeze(1)  # (T, D) packed
+    y = (H * Cp[:, :, None]).sum(1)  # (T, D) packed (a batch of (1, N) @ (N, D) matmuls is slower on CPU)
     final = h_init.index_copy(0, lay.last_seq, H.index_select(0, lay.last_pos).transpose(1, 2))  # (S, D, N)
     return y.index_select(0, lay.token_to_packed).to(u.dtype), final
 

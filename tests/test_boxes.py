@@ -14,6 +14,7 @@ import model.boxes as boxes_mod
 from model.boxes import (
     Detections,
     box_corners_bev,
+    iou_bev_upper_bound,
     near_pairs,
     rotated_iou_3d,
     rotated_iou_3d_aligned,
@@ -213,6 +214,21 @@ def test_near_pairs_is_the_circle_test(monkeypatch: pytest.MonkeyPatch, chunk: i
     assert pairs(near_pairs(torch.from_numpy(a))) == [(i, j) for i, j in brute(a, a) if i < j]
 
 
+def test_iou_upper_bound_bounds_and_is_tight_when_axis_aligned() -> None:
+    g = np.random.default_rng(11)
+    a = rand_boxes(g, 400, spread=3.0)
+    b = a + np.concatenate([g.normal(0, 0.5, (400, 2)), np.zeros((400, 4)), g.normal(0, 0.5, (400, 1))], 1)
+    exact = ref_iou_pairs(a, b)
+    bound = iou_bev_upper_bound(torch.from_numpy(a), torch.from_numpy(b)).numpy()
+    assert (bound >= exact - 1e-9).all() and (exact > 0.3).sum() > 50
+    aligned = a.copy()
+    aligned[:, 6] = 0.0
+    shifted = aligned.copy()
+    shifted[:, 0] += g.uniform(-1, 1, 400)
+    got = iou_bev_upper_bound(torch.from_numpy(aligned), torch.from_numpy(shifted)).numpy()
+    np.testing.assert_allclose(got, ref_iou_pairs(aligned, shifted), rtol=0, atol=1e-9)
+
+
 def test_aligned_iou_gradient() -> None:
     a = torch.tensor([[0.1, 0.2, 0.0, 4.0, 2.0, 1.5, 0.3]], dtype=torch.float64, requires_grad=True)
     b = torch.tensor([[0.9, -0.4, 0.3, 3.5, 1.8, 1.2, -0.2]], dtype=torch.float64, requires_grad=True)
@@ -244,6 +260,18 @@ def test_nms_matches_reference(threshold: float) -> None:
     assert 12 < len(expected) < len(b)  # suppression happened, and not everything went
     kept = nms_rotated(torch.from_numpy(b).float(), torch.from_numpy(s).float(), threshold, max_out=5)
     assert kept.tolist() == expected[:5]
+
+
+@pytest.mark.parametrize("threshold", [0.1, 0.75])
+@pytest.mark.parametrize("max_out", [1, 4, 12, 60])
+def test_nms_max_out_equals_truncated_full_nms(threshold: float, max_out: int) -> None:
+    """NMS first tries the best 2 x max_out candidates alone: here enough, or (0.1, max_out >= 12) not."""
+    g = np.random.default_rng(max_out)
+    b = clustered(g, 12, 15)
+    s = g.uniform(size=len(b))
+    expected = ref_greedy_nms(b, s, threshold)
+    kept = nms_rotated(torch.from_numpy(b), torch.from_numpy(s), threshold, max_out=max_out)
+    assert kept.tolist() == expected[:max_out]
 
 
 def test_nms_long_chain_across_blocks() -> None:

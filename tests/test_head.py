@@ -89,6 +89,26 @@ def test_forward_shapes(in_channels: int, cfg: HeadConfig, rot: int) -> None:
     assert dets[0].boxes[:, 6].abs().max() <= math.pi
 
 
+@pytest.mark.parametrize("convs", [1, 2, 3])
+def test_stacked_entry_convs_equal_per_branch(convs: int) -> None:
+    """`forward` runs the branches' first convs as one conv; `forward_per_branch` runs them one by one."""
+    cfg = dataclasses.replace(tiny().head, head_convs=convs)
+    torch.manual_seed(convs)
+    head = CenterHead(24, cfg)
+    for m in head.modules():  # BN statistics that are not the identity
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+    x = torch.randn(2, 24, 9, 13)
+    for mode in (head.train, head.eval):
+        mode()
+        got, want = head(x), head.forward_per_branch(x)
+        for f in dataclasses.fields(HeadOutput):
+            torch.testing.assert_close(getattr(got, f.name), getattr(want, f.name), rtol=1e-5, atol=1e-5)
+    got.heatmap.sum().backward()
+    assert all(p.grad is not None for p in head.heatmap.parameters())
+
+
 def test_decode_recovers_planted_boxes() -> None:
     item0 = [
         Planted((3.17, -2.05, -0.4, 4.6, 1.9, 1.6, 0.3), 0, 0.9, 0.8),
