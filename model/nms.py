@@ -91,15 +91,19 @@ def _grouped_nms(boxes: Tensor, scores: Tensor, thresholds: Tensor, groups: Tens
     if boxes.shape[0] == 0 or max_out <= 0:
         return torch.zeros(0, dtype=torch.int64, device=boxes.device)
     order = torch.argsort(scores, descending=True, stable=True)  # (N,)
+    n = order.shape[0]
+
+    def keep_of(m: int) -> Tensor:  # greedy NMS of the best m candidates -> (m,) bool
+        head = order[:m]
+        return _greedy_keep(_overlap_matrix(boxes[head], thresholds[head], groups[head]), max_out)
+
     # greedy decisions on a score-ordered prefix do not depend on what follows it: when the best
     # _PREFIX x max_out candidates already keep max_out boxes, the rest need no overlap test at all
-    m = min(order.shape[0], _PREFIX * max_out)
-    while True:
-        head = order[:m]
-        keep = _greedy_keep(_overlap_matrix(boxes[head], thresholds[head], groups[head]), max_out)  # (m,)
-        if m == order.shape[0] or int(keep.sum()) >= max_out:
-            return head[keep][:max_out]
-        m = order.shape[0]
+    m = min(n, _PREFIX * max_out)
+    keep = keep_of(m)
+    if m < n and int(keep.sum()) < max_out:
+        m, keep = n, keep_of(n)
+    return order[:m][keep][:max_out]
 
 
 def class_nms(
