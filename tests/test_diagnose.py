@@ -58,3 +58,29 @@ def test_phim_diagnose_on_the_shipped_model() -> None:
     assert vehicles["targets"] >= 5 and vehicles["iou_threshold"] == 0.7
     assert 0.0 <= vehicles["at_threshold"] <= 1.0 and 0.0 < vehicles["iou"] <= 1.0
     assert vehicles["centre_m"] < 1.0  # the trained model finds vehicle centres to within a metre
+
+
+def test_phim_diagnose_by_points_and_range() -> None:
+    phim = str(Path(sys.executable).parent / "phim")
+    groups = {}
+    for by in ("points", "range"):
+        args = [phim, "diagnose", "--scans", "2", "--by", by, "--json"]
+        done = subprocess.run(args, capture_output=True, text=True, timeout=300, cwd=REPO)
+        assert done.returncode == 0, done.stderr[-3000:]
+        groups[by] = json.loads(done.stdout)
+    whole = json.loads(
+        subprocess.run(
+            [phim, "diagnose", "--scans", "2", "--json"],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            cwd=REPO,
+        ).stdout
+    )
+    for by, result in groups.items():  # the buckets split each class's targets
+        vehicle_keys = [k for k in result if k.startswith("VEHICLE, ")]
+        assert len(vehicle_keys) >= 2, result.keys()
+        assert sum(result[k]["targets"] for k in vehicle_keys) == whole["VEHICLE"]["targets"], by
+    assert "VEHICLE, >= 301 points" in groups["points"] or "VEHICLE, 1-20 points" in groups["points"]
+    bad = subprocess.run([phim, "diagnose", "--by", "colour"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode != 0 and "--by" in bad.stderr

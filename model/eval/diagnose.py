@@ -4,12 +4,14 @@ For each labelled scan (no augmentation, all sectors as one stream, full-turn pr
 are read at the centre cell of every target box, exactly where training supervises them, and decoded as the
 loss decodes them. Per class this reports each part's error (centre, z, dims, heading axis and direction),
 the 3D IoU of the decoded box with its target, and the same IoU with the true yaw put in: how much of the
-shortfall at the AP threshold is heading. It says nothing about false positives or missed peaks; `phim eval`
-is the metric.
+shortfall at the AP threshold is heading; optionally broken down by how well each box is seen (points inside
+it) or by its range. It says nothing about false positives or missed peaks; `phim eval` is the metric.
 """
 
 from __future__ import annotations
 
+import enum
+import itertools
 import math
 from collections.abc import Callable, Sequence
 
@@ -35,6 +37,20 @@ COLUMNS = (
     *("centre_m", "z_m", "rel_l", "rel_w", "rel_h", "axis_deg", "flipped"),
     *("iou", "iou_true_yaw", "score"),
 )
+# per target box, after COLUMNS: the points of the scan inside it, its distance from the sensor (m)
+CONTEXT = ("points", "range_m")
+
+
+class Breakdown(enum.StrEnum):
+    """How `diagnose` groups the target boxes: by class, or by class and a bucket of points or range."""
+
+    CLASS = "class"
+    POINTS = "points"
+    RANGE = "range"
+
+
+# the CONTEXT column each breakdown buckets, and the buckets' lower edges (points: counts; range: metres)
+BUCKETS = {Breakdown.POINTS: ("points", (1, 21, 51, 101, 301)), Breakdown.RANGE: ("range_m", (0, 15, 30, 45))}
 
 
 def box_errors(pred: Tensor, true: Tensor, score: Tensor) -> Tensor:
@@ -57,7 +73,8 @@ def box_errors(pred: Tensor, true: Tensor, score: Tensor) -> Tensor:
 
 @torch.inference_mode()
 def diagnose_scan(model: PHiM, scan: LabeledScan) -> np.ndarray:
-    """One scan -> (T, 1 + len(COLUMNS)) float64 rows: the label, then COLUMNS, per target box."""
+    """One scan -> (T, 1 + len(COLUMNS) + len(CONTEXT)) float64 rows per target box: the label, COLUMNS,
+    CONTEXT."""
     sample = make_sample(scan, model.cfg, NO_AUGMENT, np.random.default_rng(0))
     dev = model.device
     sectors = [s.to(dev) for s in sample.sectors]
@@ -71,7 +88,36 @@ def diagnose_scan(model: PHiM, scan: LabeledScan) -> np.ndarray:
     true = torch.from_numpy(t.boxes).double()  # (T, 7)
     labels = torch.from_numpy(t.labels)
     score = torch.sigmoid(gather_cells(out.heatmap, flat)).cpu().gather(1, labels[:, None])[:, 0]  # (T,)
-    return torch.cat([labels.double()[:, None], box_errors(pred, true, score.double())], 1).numpy()
+    errors = box_errors(pred, true, score.double()).numpy()
+    return np.column_stack([t.labels, errors, _context(t.boxes, scan)])
+
+
+def _context(targets: np.ndarray, scan: LabeledScan) -> np.ndarray:
+    """(T, 7) target boxes (unaugmented copies of ground-truth boxes) -> (T, 2): points inside, range."""
+    gt = scan.gt.boxes
+    dist = np.hypot(targets[:, None, 0] - gt[None, :, 0], targets[:, None, 1] - gt[None, :, 1])  # (T, M)
+    match = dist.argmin(axis=1) if gt.shape[0] else np.zeros(0, np.int64)  # (T,)
+    if targets.shape[0] and not (dist.min(axis=1) < 1e-3).all():
+        raise ValueError(f"scan {scan.name}: a target box is not one of the ground-truth boxes")
+    return np.column_stack([scan.gt.num_points[match], np.hypot(gt[match, 0], gt[match, 1])])
+
+
+def _bucket_names(by: Breakdown) -> list[str]:
+    edges, unit = BUCKETS[by][1], "points" if by is Breakdown.POINTS else "m"
+    step = 1 if by is Breakdown.POINTS else 0  # points are counts: 1-20, 21-50; ranges meet: 0-15, 15-30
+    names = [f"{lo}-{hi - step} {unit}" for lo, hi in itertools.pairwise(edges)]
+    return [*names, f">= {edges[-1]} {unit}"]
+
+
+def _summary(sel: np.ndarray, thr: float) -> dict[str, float]:
+    """Rows of one group (COLUMNS first) -> target count, medians (`flipped`: the fraction), share >= thr."""
+    summary = {"targets": float(len(sel))}
+    for j, col in enumerate(COLUMNS):
+        summary[col] = float(sel[:, j].mean() if col == "flipped" else np.median(sel[:, j]))
+    summary["iou_threshold"] = thr
+    summary["at_threshold"] = float((sel[:, COLUMNS.index("iou")] >= thr).mean())
+    summary["at_threshold_true_yaw"] = float((sel[:, COLUMNS.index("iou_true_yaw")] >= thr).mean())
+    return summary
 
 
 def diagnose(
@@ -79,32 +125,31 @@ def diagnose(
     indices: Sequence[int],
     scan_at: Callable[[int], LabeledScan],
     metrics: MetricsConfig | None = None,
+    by: Breakdown = Breakdown.CLASS,
 ) -> dict[str, dict[str, float]]:
-    """Per class name: target count, the median of each COLUMNS entry (`flipped`: the fraction), and the
-    fraction of targets whose IoU reaches the class's AP threshold, with the predicted and the true yaw."""
+    """Per class name (with `by` points / range: per "CLASS, bucket"): target count, the median of each
+    COLUMNS entry (`flipped`: the fraction), and the fraction of targets whose IoU reaches the class's AP
+    threshold, with the predicted and the true yaw. Empty groups are left out."""
     thresholds = (metrics or MetricsConfig()).iou_thresholds
-    rows = np.concatenate(
-        [diagnose_scan(model, scan_at(i)) for i in indices] or [np.zeros((0, 1 + len(COLUMNS)))]
-    )
+    width = 1 + len(COLUMNS) + len(CONTEXT)
+    rows = np.concatenate([diagnose_scan(model, scan_at(i)) for i in indices] or [np.zeros((0, width))])
     out: dict[str, dict[str, float]] = {}
     for k, name in enumerate(model.cfg.head.class_names):
-        sel = rows[rows[:, 0] == k, 1:]
-        if not len(sel):
-            continue
-        summary = {"targets": float(len(sel))}
-        for j, col in enumerate(COLUMNS):
-            summary[col] = float(sel[:, j].mean() if col == "flipped" else np.median(sel[:, j]))
-        thr = thresholds[k]
-        summary["iou_threshold"] = thr
-        summary["at_threshold"] = float((sel[:, COLUMNS.index("iou")] >= thr).mean())
-        summary["at_threshold_true_yaw"] = float((sel[:, COLUMNS.index("iou_true_yaw")] >= thr).mean())
-        out[name] = summary
+        of_class = rows[rows[:, 0] == k, 1:]
+        if by is Breakdown.CLASS:
+            groups = {name: of_class}
+        else:
+            column, edges = BUCKETS[by]
+            value = of_class[:, len(COLUMNS) + CONTEXT.index(column)]  # (n,)
+            bucket = np.searchsorted(np.asarray(edges), value, side="right") - 1  # (n,)
+            groups = {f"{name}, {b}": of_class[bucket == i] for i, b in enumerate(_bucket_names(by))}
+        out.update({key: _summary(sel, thresholds[k]) for key, sel in groups.items() if len(sel)})
     return out
 
 
 def format_diagnosis(d: dict[str, dict[str, float]]) -> str:
     head = (
-        "| class | targets | centre err | z err | l / w / h rel. err | axis err | flipped | IoU "
+        "| group | targets | centre err | z err | l / w / h rel. err | axis err | flipped | IoU "
         "| IoU, true yaw | IoU >= thr | same, true yaw | score |"
     )
     rows = [head, "|" + "---|" * 12]

@@ -133,18 +133,22 @@ def diagnose_cmd(
     seed: HeldOutSeedOpt = 7,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
     device: DeviceOpt = "auto",
+    by: Annotated[str, typer.Option(help="group by: class, points (inside the box) or range")] = "class",
 ) -> None:
     """Each part of the predicted boxes against the truth, read at the true centre cells, per class."""
     from model.checkpoint import resolve_checkpoint
     from model.data.sources import scan_source
-    from model.eval.diagnose import diagnose, format_diagnosis
+    from model.eval.diagnose import Breakdown, diagnose, format_diagnosis
+
+    if by not in {b.value for b in Breakdown}:
+        raise typer.BadParameter(f"{by!r}; expected one of {[b.value for b in Breakdown]}", param_hint="--by")
     from model.runtime import pick_device, tune_malloc
 
     tune_malloc()
     source = scan_source(data, seed, shuffle=False)
     count = min(scans, len(source))
     model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
-    result = diagnose(model, range(count), source)
+    result = diagnose(model, range(count), source, by=Breakdown(by))
     if as_json:
         typer.echo(json.dumps(result, indent=2))
         return
