@@ -64,13 +64,15 @@ def bench_model_cmd(
     batch: Annotated[int, typer.Option(help="streams per forward")] = 1,
     turns: Annotated[int, typer.Option(help="timed turns")] = 10,
     threads: Annotated[int, typer.Option(help="torch CPU threads (0: leave as is)")] = 0,
-    checkpoint: Annotated[Path | None, typer.Option(help="weights to load (default: fresh init)")] = None,
+    checkpoint: Annotated[
+        str | None, typer.Option(help="weights to load: a file, or 'default' (default: fresh init)")
+    ] = None,
     scan: Annotated[ScanImpl | None, typer.Option(help="selective scan (default: the config's)")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
 ) -> None:
     """Time one sector at a time of a scan, with the sector buffer loaded."""
     from model.bench import bench_model
-    from model.checkpoint import load_checkpoint
+    from model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
     from model.detector import PHiM
 
     logging.basicConfig(level=logging.WARNING)
@@ -79,7 +81,8 @@ def bench_model_cmd(
         torch.set_num_threads(threads)
     dev = pick_device(device)
     cfg = get_config(config)
-    model = load_checkpoint(checkpoint, cfg, dev) if checkpoint else PHiM(cfg).to(dev)
+    path = DEFAULT_CHECKPOINT if checkpoint == "default" else checkpoint
+    model = load_checkpoint(path, cfg, dev) if path else PHiM(cfg).to(dev)
     if scan is not None:
         model.set_scan(scan)
     turn, source = _load_turn(points, fallback_kitti=True)

@@ -1,0 +1,39 @@
+"""`phim model info` and `phim bench model` as commands (their numbers are benchmarks, not checked here)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from typer.testing import CliRunner
+
+from server.cli import app
+
+
+def test_model_info_paper_is_within_ten_percent_of_the_papers_parameters(tmp_path: Path) -> None:
+    g = np.random.default_rng(0)  # a small scan keeps the counted forwards quick; params do not depend on it
+    r, a = g.uniform(3, 60, 4000), g.uniform(-np.pi, np.pi, 4000)
+    scan = np.stack([r * np.cos(a), r * np.sin(a), g.uniform(-1.5, 2, 4000), g.uniform(0, 1, 4000)], 1)
+    scan.astype(np.float32).tofile(tmp_path / "scan.bin")
+    args = ["model", "info", "--config", "paper", "--points", str(tmp_path / "scan.bin"), "--json"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.output)
+    assert isinstance(info["params"], int) and abs(info["params"] / 11.8e6 - 1) <= 0.10
+    assert info["gflops"] > 0 and info["input_points"] == 4000
+
+
+def test_bench_model_runs_the_shipped_weights() -> None:
+    args = ["bench", "model", "--config", "tiny", "--checkpoint", "default", "--turns", "1", "--json"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    bench = json.loads(result.output.strip().splitlines()[-1])
+    assert bench["device"] == "cpu" and bench["sectors_per_turn"] == 4 and bench["iterations"] == 4
+    assert 0 < bench["p50_ms"] <= bench["p90_ms"] and bench["peak_mem_mb"] > 0
+
+
+def test_bench_model_names_a_missing_checkpoint() -> None:
+    result = CliRunner().invoke(app, ["bench", "model", "--checkpoint", "no/such.pt", "--turns", "1"])
+    assert result.exit_code != 0
+    assert "no/such.pt" in str(result.exception)
