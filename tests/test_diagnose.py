@@ -81,6 +81,6 @@ def test_phim_diagnose_by_points_and_range() -> None:
         vehicle_keys = [k for k in result if k.startswith("VEHICLE, ")]
         assert len(vehicle_keys) >= 2, result.keys()
         assert sum(result[k]["targets"] for k in vehicle_keys) == whole["VEHICLE"]["targets"], by
-    assert "VEHICLE, >= 301 points" in groups["points"] or "VEHICLE, 1-20 points" in groups["points"]
+    assert "VEHICLE, >= 301 points" in groups["points"] or "VEHICLE, 0-20 points" in groups["points"]
     bad = subprocess.run([phim, "diagnose", "--by", "colour"], capture_output=True, text=True, timeout=120)
     assert bad.returncode != 0 and "--by" in bad.stderr

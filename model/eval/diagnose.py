@@ -50,7 +50,7 @@ class Breakdown(enum.StrEnum):
 
 
 # the CONTEXT column each breakdown buckets, and the buckets' lower edges (points: counts; range: metres)
-BUCKETS = {Breakdown.POINTS: ("points", (1, 21, 51, 101, 301)), Breakdown.RANGE: ("range_m", (0, 15, 30, 45))}
+BUCKETS = {Breakdown.POINTS: ("points", (0, 21, 51, 101, 301)), Breakdown.RANGE: ("range_m", (0, 15, 30, 45))}
 
 
 def box_errors(pred: Tensor, true: Tensor, score: Tensor) -> Tensor:
@@ -104,7 +104,7 @@ def _context(targets: np.ndarray, scan: LabeledScan) -> np.ndarray:
 
 def _bucket_names(by: Breakdown) -> list[str]:
     edges, unit = BUCKETS[by][1], "points" if by is Breakdown.POINTS else "m"
-    step = 1 if by is Breakdown.POINTS else 0  # points are counts: 1-20, 21-50; ranges meet: 0-15, 15-30
+    step = 1 if by is Breakdown.POINTS else 0  # points are counts: 0-20, 21-50; ranges meet: 0-15, 15-30
     names = [f"{lo}-{hi - step} {unit}" for lo, hi in itertools.pairwise(edges)]
     return [*names, f">= {edges[-1]} {unit}"]
 

@@ -139,10 +139,10 @@ def diagnose_cmd(
     from model.checkpoint import resolve_checkpoint
     from model.data.sources import scan_source
     from model.eval.diagnose import Breakdown, diagnose, format_diagnosis
+    from model.runtime import pick_device, tune_malloc
 
     if by not in {b.value for b in Breakdown}:
         raise typer.BadParameter(f"{by!r}; expected one of {[b.value for b in Breakdown]}", param_hint="--by")
-    from model.runtime import pick_device, tune_malloc
 
     tune_malloc()
     source = scan_source(data, seed, shuffle=False)
