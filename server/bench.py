@@ -8,6 +8,11 @@ sends the sectors of one scan in order on one stream, one request in flight, and
     overhead   = end_to_end - model: encode, transport, decode, queueing and scheduling, reply
 
 so the overhead of each request is measured against its own forward, whatever the load on the machine.
+
+The transport floor: after each request the same client stack sends a payload of the sector's size to a
+bare responder (`server.bench_echo`, its own process) that keeps the CPU busy for that request's model
+time and answers with as many bytes as the reply had. What that round trip costs beyond the hold is what
+the transport itself costs on this machine; overhead minus floor is what this server's code adds.
 """
 
 from __future__ import annotations
@@ -31,8 +36,11 @@ import typer
 
 from clients.base import DetectorClient, sector_message
 from clients.connect import ConnectConfig, Transport, make_client
+from clients.http_conn import ConnectionPool
 from clients.sectorizer import split_scan
 from model.data.readers import read_scan
+from server.bench_echo import ECHO_KEY, ECHO_PATH, HELD, request_header
+from server.protocol import encode_reply, encode_sector
 
 READY_TIMEOUT_S = 300.0
 
@@ -50,6 +58,8 @@ class TransportBench:
     overhead_p99_ms: float
     queue_p50_ms: float  # reply timings.queue_ms: submitted to the worker -> forward started
     worker_p50_ms: float  # reply timings.total_ms - model_ms: the worker's part of the overhead
+    floor_p50_ms: float | None = None  # the bare transport's round trip beyond the hold (None: not run)
+    own_p50_ms: float | None = None  # p50 of (overhead - floor) over paired requests: this server's code
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -59,11 +69,51 @@ def _pct(values: list[float], q: float) -> float:
     return round(float(np.percentile(np.asarray(values), q)), 3)
 
 
+class Floor:
+    """Bare round trips over one transport to `server.bench_echo`: send `body`, get the seconds it held."""
+
+    def __init__(self, transport: Transport, url: str, zenoh_endpoint: str):
+        self.transport = transport
+        self._pool: ConnectionPool | None = None
+        self._session = None
+        if transport is Transport.HTTP:
+            self._pool = ConnectionPool(url, timeout_s=10.0, connect_timeout_s=5.0)
+        else:
+            from server.zenoh_transport import ZenohConfig, open_session
+
+            self._session = open_session(ZenohConfig(mode="client", listen=(), connect=(zenoh_endpoint,)))
+
+    def round_trip(self, body: bytes) -> float:
+        if self._pool is not None:
+            headers = {"Content-Type": "application/octet-stream"}
+            answer = self._pool.request("POST", ECHO_PATH, body, headers).body
+        else:
+            import zenoh
+
+            assert self._session is not None
+            block = zenoh.CongestionControl.BLOCK
+            replies = self._session.get(ECHO_KEY, payload=body, congestion_control=block, timeout=10.0)
+            answer = b"".join(r.ok.payload.to_bytes() for r in replies if r.ok is not None)
+        return HELD.unpack_from(answer)[0]
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.close()
+        if self._session is not None:
+            self._session.close()
+
+
 def bench_transport(
-    client: DetectorClient, sectors: list[np.ndarray], turns: int, warmup_turns: int, stream_id: str
+    client: DetectorClient,
+    sectors: list[np.ndarray],
+    turns: int,
+    warmup_turns: int,
+    stream_id: str,
+    floor: Floor | None = None,
 ) -> TransportBench:
-    """Send `warmup_turns + turns` turns of `sectors` (in order, one in flight); time the last `turns`."""
-    e2e, model, queue, total = [], [], [], []
+    """Send `warmup_turns + turns` turns of `sectors` (in order, one in flight); time the last `turns`.
+    With `floor`, each request is followed by a bare round trip of the same size holding its model time."""
+    e2e, model, queue, total, bare = [], [], [], [], []
     seq = 0
     for turn in range(warmup_turns + turns):
         for index, points in enumerate(sectors):
@@ -72,12 +122,19 @@ def bench_transport(
             reply = client.send(msg)
             dt = (time.perf_counter() - t0) * 1e3
             seq += 1
+            if floor is not None:
+                size = len(encode_sector(msg))
+                body = request_header(reply.timings.model_ms, len(encode_reply(reply))) + bytes(size)
+                t0 = time.perf_counter()
+                held = floor.round_trip(body)
+                bare.append((time.perf_counter() - t0 - held) * 1e3)
             if turn >= warmup_turns:
                 e2e.append(dt)
                 model.append(reply.timings.model_ms)
                 queue.append(reply.timings.queue_ms)
                 total.append(reply.timings.total_ms)
     overhead = [a - b for a, b in zip(e2e, model, strict=True)]
+    bare = bare[len(bare) - len(e2e) :]  # the timed turns' round trips
     return TransportBench(
         transport=client.transport,
         sectors=len(e2e),
@@ -90,6 +147,8 @@ def bench_transport(
         overhead_p99_ms=_pct(overhead, 99),
         queue_p50_ms=_pct(queue, 50),
         worker_p50_ms=_pct([a - b for a, b in zip(total, model, strict=True)], 50),
+        floor_p50_ms=_pct(bare, 50) if bare else None,
+        own_p50_ms=_pct([a - b for a, b in zip(overhead, bare, strict=True)], 50) if bare else None,
     )
 
 
@@ -100,17 +159,12 @@ def free_port() -> int:
 
 
 @contextlib.contextmanager
-def spawned_server(threads: int, extra: list[str]) -> Iterator[ConnectConfig]:
-    """`phim serve` in a subprocess on free loopback ports; yields how to reach it; SIGTERM at the end."""
-    http, zport = free_port(), free_port()
-    endpoint = f"tcp/127.0.0.1:{zport}"
-    cmd = [sys.executable, "-m", "server.cli", "serve", "--port", str(http), "--zenoh-listen", endpoint]
-    cmd += ["--threads", str(threads), *extra]
+def spawned(cmd: list[str], ready_url: str) -> Iterator[None]:
+    """`cmd` in a subprocess until `ready_url` answers 200; SIGTERM at the end."""
     proc = subprocess.Popen(cmd, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    url = f"http://127.0.0.1:{http}"
     try:
-        _wait_ready(url, proc)
-        yield ConnectConfig(url=url, zenoh_connect=(endpoint,))
+        _wait_ready(ready_url, proc)
+        yield
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -120,18 +174,38 @@ def spawned_server(threads: int, extra: list[str]) -> Iterator[ConnectConfig]:
             proc.wait()
 
 
+@contextlib.contextmanager
+def spawned_server(threads: int, extra: list[str]) -> Iterator[ConnectConfig]:
+    """`phim serve` in a subprocess on free loopback ports; yields how to reach it."""
+    http, endpoint = free_port(), f"tcp/127.0.0.1:{free_port()}"
+    cmd = [sys.executable, "-m", "server.cli", "serve", "--port", str(http), "--zenoh-listen", endpoint]
+    url = f"http://127.0.0.1:{http}"
+    with spawned([*cmd, "--threads", str(threads), *extra], f"{url}/health/ready"):
+        yield ConnectConfig(url=url, zenoh_connect=(endpoint,))
+
+
+@contextlib.contextmanager
+def spawned_echo(threads: int) -> Iterator[ConnectConfig]:
+    """`server.bench_echo` (the transport floor's responder) on free loopback ports."""
+    http, endpoint = free_port(), f"tcp/127.0.0.1:{free_port()}"
+    cmd = [sys.executable, "-m", "server.bench_echo", "--port", str(http), "--zenoh-listen", endpoint]
+    url = f"http://127.0.0.1:{http}"
+    with spawned([*cmd, "--threads", str(threads)], f"{url}/ready"):
+        yield ConnectConfig(url=url, zenoh_connect=(endpoint,))
+
+
 def _wait_ready(url: str, proc: subprocess.Popen) -> None:
     import httpx  # the clients' dependency; `phim serve` itself does not need it
 
     deadline = time.monotonic() + READY_TIMEOUT_S
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise RuntimeError(f"phim serve exited with code {proc.returncode} before it was ready")
+            raise RuntimeError(f"{proc.args[2]} exited with code {proc.returncode} before it was ready")
         with contextlib.suppress(httpx.HTTPError):
-            if httpx.get(f"{url}/health/ready", timeout=2.0).status_code == 200:
+            if httpx.get(url, timeout=2.0).status_code == 200:
                 return
         time.sleep(0.25)
-    raise RuntimeError(f"phim serve at {url} not ready after {READY_TIMEOUT_S:.0f} s")
+    raise RuntimeError(f"{url} not ready after {READY_TIMEOUT_S:.0f} s")
 
 
 def load_sectors(scan_path: Path, sectors: int = 4) -> list[np.ndarray]:
@@ -141,29 +215,45 @@ def load_sectors(scan_path: Path, sectors: int = 4) -> list[np.ndarray]:
 
 
 def run_bench(
-    connect: ConnectConfig, transports: list[Transport], sectors: list[np.ndarray], turns: int, warmup: int
+    connect: ConnectConfig,
+    transports: list[Transport],
+    sectors: list[np.ndarray],
+    turns: int,
+    warmup: int,
+    echo: ConnectConfig | None = None,
 ) -> list[TransportBench]:
+    """Per transport, the server's requests (and with `echo`, each one's bare round trip after it)."""
     results = []
     for transport in transports:
         cfg = ConnectConfig(**{**asdict(connect), "transport": transport})
-        with make_client(cfg) as client:
-            stream = f"bench-{transport.value}-{os.getpid()}"
-            results.append(bench_transport(client, sectors, turns, warmup, stream))
-            client.end_stream(stream)  # one live stream at a time: no transport waits on another's
+        floor = None if echo is None else Floor(transport, echo.url, echo.zenoh_connect[0])
+        try:
+            with make_client(cfg) as client:
+                stream = f"bench-{transport.value}-{os.getpid()}"
+                results.append(bench_transport(client, sectors, turns, warmup, stream, floor))
+                client.end_stream(stream)  # one live stream at a time: no transport waits on another's
+        finally:
+            if floor is not None:
+                floor.close()
     return results
+
+
+def _ms(value: float | None) -> str:
+    return "–" if value is None else f"{value:.2f} ms"
 
 
 def table(results: list[TransportBench]) -> str:
     head = (
         "| transport | sectors | points | end-to-end p50 | model p50 | overhead p50 | p90 | p99 "
-        "| in worker p50 | of it queued p50 |"
+        "| in worker p50 | of it queued p50 | bare transport p50 | server's own p50 |"
     )
-    rows = [head, "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = [head, "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         rows.append(
             f"| {r.transport} | {r.sectors} | {r.points_per_sector} | {r.end_to_end_p50_ms:.2f} ms "
             f"| {r.model_p50_ms:.2f} ms | **{r.overhead_p50_ms:.2f} ms** | {r.overhead_p90_ms:.2f} ms "
-            f"| {r.overhead_p99_ms:.2f} ms | {r.worker_p50_ms:.2f} ms | {r.queue_p50_ms:.2f} ms |"
+            f"| {r.overhead_p99_ms:.2f} ms | {r.worker_p50_ms:.2f} ms | {r.queue_p50_ms:.2f} ms "
+            f"| {_ms(r.floor_p50_ms)} | {_ms(r.own_p50_ms)} |"
         )
     return "\n".join(rows)
 
@@ -180,6 +270,9 @@ def bench_server_cmd(
     turns: Annotated[int, typer.Option(help="timed turns per transport (4 sectors each)")] = 25,
     warmup_turns: Annotated[int, typer.Option(help="untimed turns first")] = 3,
     threads: Annotated[int, typer.Option(help="torch CPU threads of the spawned server")] = 2,
+    floor: Annotated[
+        bool, typer.Option(help="after each request, a bare round trip of its size (the transport floor)")
+    ] = True,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
 ) -> None:
     """End-to-end latency per sector beside the model's own time: the server's overhead per transport."""
@@ -192,13 +285,13 @@ def bench_server_cmd(
         raise typer.BadParameter(f"{scan}: no such file (give --points)")
     sectors = load_sectors(scan)
     chosen = transport or [Transport.HTTP, Transport.ZENOH]
-    if url:
-        results = run_bench(
-            ConnectConfig(url=url, zenoh_connect=(zenoh_connect,)), chosen, sectors, turns, warmup_turns
-        )
-    else:
-        with spawned_server(threads, ["--log-level", "warning"]) as connect:
-            results = run_bench(connect, chosen, sectors, turns, warmup_turns)
+    with contextlib.ExitStack() as stack:
+        echo = stack.enter_context(spawned_echo(threads)) if floor else None
+        if url:
+            connect = ConnectConfig(url=url, zenoh_connect=(zenoh_connect,))
+        else:
+            connect = stack.enter_context(spawned_server(threads, ["--log-level", "warning"]))
+        results = run_bench(connect, chosen, sectors, turns, warmup_turns, echo)
     if as_json:
         typer.echo(json.dumps({"scan": str(scan), "results": [r.to_dict() for r in results]}))
         return
