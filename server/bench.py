@@ -33,6 +33,7 @@ from typing import Annotated
 
 import numpy as np
 import typer
+import zenoh
 
 from clients.base import DetectorClient, sector_message
 from clients.connect import ConnectConfig, Transport, make_client
@@ -41,6 +42,7 @@ from clients.sectorizer import split_scan
 from model.data.readers import read_scan
 from server.bench_echo import ECHO_KEY, ECHO_PATH, HELD, request_header
 from server.protocol import encode_reply, encode_sector
+from server.zenoh_transport import ZenohConfig, open_session
 
 READY_TIMEOUT_S = 300.0
 
@@ -73,14 +75,11 @@ class Floor:
     """Bare round trips over one transport to `server.bench_echo`: send `body`, get the seconds it held."""
 
     def __init__(self, transport: Transport, url: str, zenoh_endpoint: str):
-        self.transport = transport
         self._pool: ConnectionPool | None = None
-        self._session = None
+        self._session: zenoh.Session | None = None
         if transport is Transport.HTTP:
             self._pool = ConnectionPool(url, timeout_s=10.0, connect_timeout_s=5.0)
         else:
-            from server.zenoh_transport import ZenohConfig, open_session
-
             self._session = open_session(ZenohConfig(mode="client", listen=(), connect=(zenoh_endpoint,)))
 
     def round_trip(self, body: bytes) -> float:
@@ -88,8 +87,6 @@ class Floor:
             headers = {"Content-Type": "application/octet-stream"}
             answer = self._pool.request("POST", ECHO_PATH, body, headers).body
         else:
-            import zenoh
-
             assert self._session is not None
             block = zenoh.CongestionControl.BLOCK
             replies = self._session.get(ECHO_KEY, payload=body, congestion_control=block, timeout=10.0)
