@@ -72,7 +72,7 @@ def http_app(holder: Holder) -> Starlette:
 
 
 def serve_zenoh(holder: Holder, listen: str) -> tuple[object, object]:
-    """A queryable on ECHO_KEY; a receiver thread holds and replies (no zenoh call in a callback)."""
+    """A queryable on ECHO_KEY; a receiver thread hands each query to the holder, then replies."""
     import zenoh
 
     conf = zenoh.Config()
@@ -90,7 +90,7 @@ def serve_zenoh(holder: Holder, listen: str) -> tuple[object, object]:
                 return
             try:
                 body = query.payload.to_bytes() if query.payload is not None else b""
-                query.reply(query.key_expr, holder.answer(body))
+                query.reply(query.key_expr, holder.submit(body).result())
             finally:
                 query.drop()
 
