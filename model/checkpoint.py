@@ -109,9 +109,16 @@ def load_checkpoint(
     return model.to(device)
 
 
+def checkpoint_path(name: str | Path) -> Path:
+    """'default' (the shipped model) or a checkpoint path -> its path; a missing default is an error."""
+    if str(name) != "default":
+        return Path(name)
+    if not DEFAULT_CHECKPOINT.is_file():
+        raise CheckpointError(f"the default checkpoint {DEFAULT_CHECKPOINT} is missing from this install")
+    return DEFAULT_CHECKPOINT
+
+
 def resolve_checkpoint(name: str | Path, device: str | torch.device = "cpu") -> tuple[PHiM, Path]:
     """'default' (the shipped model) or a checkpoint path -> (the model on `device`, eval mode; its path)."""
-    path = DEFAULT_CHECKPOINT if str(name) == "default" else Path(name)
-    if str(name) == "default" and not path.is_file():
-        raise CheckpointError(f"the default checkpoint {path} is missing from this installation")
+    path = checkpoint_path(name)
     return load_checkpoint(path, device=device).eval(), path

@@ -72,7 +72,7 @@ def bench_model_cmd(
 ) -> None:
     """Time one sector at a time of a scan, with the sector buffer loaded."""
     from model.bench import bench_model
-    from model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
+    from model.checkpoint import checkpoint_path, load_checkpoint
     from model.detector import PHiM
 
     logging.basicConfig(level=logging.WARNING)
@@ -81,8 +81,7 @@ def bench_model_cmd(
         torch.set_num_threads(threads)
     dev = pick_device(device)
     cfg = get_config(config)
-    path = DEFAULT_CHECKPOINT if checkpoint == "default" else checkpoint
-    model = load_checkpoint(path, cfg, dev) if path else PHiM(cfg).to(dev)
+    model = load_checkpoint(checkpoint_path(checkpoint), cfg, dev) if checkpoint else PHiM(cfg).to(dev)
     if scan is not None:
         model.set_scan(scan)
     turn, source = _load_turn(points, fallback_kitti=True)

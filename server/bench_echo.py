@@ -14,7 +14,6 @@ trip costs beyond the hold is the floor any server on these transports pays on t
 from __future__ import annotations
 
 import asyncio
-import json
 import struct
 import threading
 import time
@@ -23,10 +22,13 @@ from typing import Annotated
 
 import torch
 import typer
+import zenoh
 from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import Response
 from starlette.routing import Route
+
+from server.zenoh_transport import ZenohConfig, open_session
 
 HEADER = struct.Struct("<dI")  # hold_ms, reply_bytes
 HELD = struct.Struct("<d")  # seconds held, at the start of the answer
@@ -71,15 +73,9 @@ def http_app(holder: Holder) -> Starlette:
     return Starlette(routes=[Route(ECHO_PATH, echo, methods=["POST"]), Route("/ready", ready)])
 
 
-def serve_zenoh(holder: Holder, listen: str) -> tuple[object, object]:
+def serve_zenoh(holder: Holder, listen: str) -> tuple[zenoh.Session, zenoh.Queryable]:
     """A queryable on ECHO_KEY; a receiver thread hands each query to the holder, then replies."""
-    import zenoh
-
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps("peer"))
-    conf.insert_json5("listen/endpoints", json.dumps([listen]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
+    session = open_session(ZenohConfig(mode="peer", listen=(listen,)))
     queryable = session.declare_queryable(ECHO_KEY, zenoh.handlers.FifoChannel(16))
 
     def receive() -> None:

@@ -46,7 +46,7 @@ def train_cmd(
     """Train a model (streaming, as the paper trains); torchrun runs the same command with DDP."""
     import torch
 
-    from model.checkpoint import DEFAULT_CHECKPOINT
+    from model.checkpoint import checkpoint_path
     from model.runtime import tune_malloc
     from model.train.loop import TrainConfig, train
 
@@ -64,7 +64,7 @@ def train_cmd(
         workers=workers,
         checkpoint_every=checkpoint_every,
         log_every=log_every,
-        init=str(DEFAULT_CHECKPOINT) if init == "default" else init,
+        init=str(checkpoint_path(init)) if init else "",
         loss=LossConfig(direction_weight=direction_weight),
     )
     path = train(cfg, out, resume=resume, device=device, progress=progress)
