@@ -13,7 +13,7 @@ import yaml
 from conftest import SHARED_DATA
 from typer.testing import CliRunner
 
-from model.data.sim import SceneConfig, Sensor, SimConfig, load_elevations, sensor_spec, simulate
+from model.data.sim import SceneConfig, Sensor, SimConfig, actors, load_elevations, sensor_spec, simulate
 from model.data.sim.ground import Ground
 from model.data.sim.raycast import Rays, SolidList
 from model.data.sim.scene import Scene
@@ -204,6 +204,43 @@ def test_a_box_behind_another_gets_fewer_points():
     assert counts[None] > 100
     assert counts[1.6] < counts[None] / 2  # only its top shows over the car in front
     assert counts[3.5] == 0  # fully hidden behind a taller box
+
+
+def _one_vehicle(box: np.ndarray, large: bool, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One vehicle (label box (7,)) on a flat empty street -> its points (N, 4), and u: where each point lies
+    along the heading, as a fraction of the length (+0.5 the front, -0.5 the back)."""
+    ground = Ground(1.73, np.zeros(2), np.zeros(0), np.zeros((0, 2)), np.zeros(0), 0.15, np.zeros((0, 8)))
+    solids = SolidList()
+    rng = np.random.default_rng(seed)
+    actors.vehicle_solids(solids, rng, actors.Candidates(box[None], np.array([large])))
+    scene = Scene((), ground, solids.build(), box[None], np.zeros(1, np.int64))
+    cfg = replace(SimConfig(), dropout=0.0)
+    points, _ = cast_scene(
+        rng, scene, Rays.spinning(cfg.firings, sensor_spec(Sensor.HDL64E).elevations_deg), cfg
+    )
+    points = points[points_in_boxes(points[:, :3], box[None].astype(np.float32))[:, 0]]
+    u = (points[:, 0] - box[0]) * math.cos(box[6]) + (points[:, 1] - box[1]) * math.sin(box[6])
+    return points, u / box[3]
+
+
+def test_a_vehicle_shows_its_front_and_back():
+    """Front and back differ as on real vehicles: a car's bonnet is lower than its cabin and boot (a
+    sedan's only a little), and retroreflective lights saturate a vehicle's back, never its front."""
+    car, truck = (4.5, 1.9, 1.6), (9.0, 2.6, 3.6)
+    higher_back = 0
+    for seed in range(12):
+        side_on = np.array([0.0, 10.0, -1.73 + car[2] / 2, *car, 0.0])
+        points, u = _one_vehicle(side_on, False, seed)
+        assert len(points) > 200
+        front, back = points[u > 0.3, 2], points[u < -0.3, 2]
+        higher_back += np.percentile(back, 90) > np.percentile(front, 90) + 0.05
+        for large, size in ((False, car), (True, truck)):
+            saturated = []  # returns at full intensity: only retroreflectors give them
+            for yaw in (0.0, math.pi):  # the back, then the front turned to the sensor
+                facing = np.array([12.0, 0.0, -1.73 + size[2] / 2, *size, yaw])
+                saturated.append(int((_one_vehicle(facing, large, seed)[0][:, 3] >= 0.99).sum()))
+            assert saturated[0] >= 5 and saturated[1] == 0, (seed, large, saturated)
+    assert higher_back >= 10
 
 
 def test_cli_writes_a_png_and_bench_reports(tmp_path):

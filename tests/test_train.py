@@ -61,6 +61,16 @@ def test_a_short_run_writes_checkpoints_and_resumes(tmp_path: Path):
     assert changed  # the resumed step trained
 
 
+def test_a_time_budget_saves_stops_and_resumes(tmp_path: Path):
+    run = tmp_path / "run"
+    train(SHORT, run, device="cpu", progress=False, max_minutes=1e-9)  # out of time after the first step
+    assert [r["step"] for r in _rows(run)] == ["1"]
+    assert torch.load(run / "state.pt", weights_only=True)["step"] == 1  # saved though checkpoint_every is 2
+    train(SHORT, run, resume=True, device="cpu", progress=False, max_minutes=60)  # a budget it does not reach
+    assert [r["step"] for r in _rows(run)] == ["1", "2", "3"]
+    assert torch.load(run / "state.pt", weights_only=True)["step"] == 3
+
+
 def test_init_starts_from_a_checkpoints_weights(tmp_path: Path):
     torch.manual_seed(3)
     start = PHiM(tiny())
@@ -111,7 +121,8 @@ def test_training_with_a_data_loader_worker_process(tmp_path: Path):
     shutil.which("torchrun", path=str(Path(sys.executable).parent)) is None, reason="torchrun"
 )
 def test_ddp_under_torchrun_on_cpu(tmp_path: Path):
-    """The same command with two processes (gloo): both ranks step together, rank 0 writes the run."""
+    """The same command with two processes (gloo): both ranks step together, rank 0 writes the run; a
+    time budget stops both at the same step, and --resume continues."""
     torchrun = str(Path(sys.executable).parent / "torchrun")
     phim = str(Path(sys.executable).parent / "phim")
     cmd = [torchrun, "--standalone", "--nproc_per_node", "2", "--no-python", phim, "train"]
@@ -131,13 +142,17 @@ def test_ddp_under_torchrun_on_cpu(tmp_path: Path):
         "--no-progress",
     ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    done = subprocess.run(
-        cmd + args + ["--log-every", "1"], capture_output=True, text=True, env=env, timeout=300
+    runs = (  # out of time after step 1 (both ranks), then resumed to the end
+        (["--max-minutes", "0.000001"], ["1"], "stopped at step 1 of 2"),
+        (["--resume"], ["1", "2"], "resuming"),
     )
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert "DDP rank 0 of 2" in done.stderr and "DDP rank 1 of 2" in done.stderr
-    rows = _rows(tmp_path / "ddp")
-    assert [r["step"] for r in rows] == ["1", "2"]
+    for more, logged, said in runs:
+        done = subprocess.run(
+            cmd + args + ["--log-every", "1", *more], capture_output=True, text=True, env=env, timeout=300
+        )
+        assert done.returncode == 0, done.stderr[-3000:]
+        assert "DDP rank 0 of 2" in done.stderr and "DDP rank 1 of 2" in done.stderr and said in done.stderr
+        assert [r["step"] for r in _rows(tmp_path / "ddp")] == logged
     assert json.loads((tmp_path / "ddp" / "train.json").read_text())["loss"]["direction_weight"] == 0.5
     load_checkpoint(tmp_path / "ddp" / "model.pt", expected=tiny())
 

@@ -42,6 +42,10 @@ def train_cmd(
     device: DeviceOpt = "auto",
     threads: Annotated[int, typer.Option(help="torch CPU threads (0: torch's default)")] = 0,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
+    max_minutes: Annotated[
+        float,
+        typer.Option(help="save and stop after this many minutes; --resume continues (0: no limit)", min=0),
+    ] = 0.0,
 ) -> None:
     """Train a model (streaming, as the paper trains); torchrun runs the same command with DDP."""
     import torch
@@ -67,8 +71,8 @@ def train_cmd(
         init=str(checkpoint_path(init)) if init else "",
         loss=LossConfig(direction_weight=direction_weight),
     )
-    path = train(cfg, out, resume=resume, device=device, progress=progress)
-    typer.echo(f"trained: {path}")
+    path = train(cfg, out, resume=resume, device=device, progress=progress, max_minutes=max_minutes)
+    typer.echo(f"model: {path}")
 
 
 def eval_cmd(

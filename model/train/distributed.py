@@ -55,6 +55,14 @@ class Dist:
         ids = [self.device.index] if self.device.type == "cuda" else None
         return DistributedDataParallel(module, device_ids=ids)
 
+    def any(self, flag: bool) -> bool:
+        """True on every rank when `flag` is true on at least one (a collective call under DDP)."""
+        if self.world == 1:
+            return flag
+        t = torch.tensor([float(flag)], device=self.device)
+        torch_dist.all_reduce(t, op=torch_dist.ReduceOp.MAX)
+        return bool(t.item())
+
     def autocast(self, enabled: bool) -> contextlib.AbstractContextManager:
         """bf16 autocast on CUDA when enabled; float32 otherwise (CPU autocast would only slow us down)."""
         if enabled and self.device.type == "cuda":

@@ -4,7 +4,8 @@ A run directory holds:
     train.json     the TrainConfig of the run (a resumed run must match it, except `steps`)
     metrics.csv    one row per logged step (loss parts, learning rate, scans/s)
     state.pt       model, optimizer and step: what `--resume` continues from (the learning rate is a
-                   function of the step, so `--resume --steps N` can also lengthen a run)
+                   function of the step, so `--resume --steps N` can also lengthen a run; a run stopped by
+                   its time budget, `--max-minutes`, saves it and continues the same way)
     model.pt       the latest weights as a phim checkpoint (`phim eval --checkpoint`, `phim serve`)
     tb/            TensorBoard events, when tensorboard is installed
 """
@@ -178,9 +179,17 @@ def _row(step: int, parts: LossParts, lr: float, scans_per_s: float) -> dict[str
 
 
 def train(
-    cfg: TrainConfig, out: Path, resume: bool = False, device: str = "auto", progress: bool = True
+    cfg: TrainConfig,
+    out: Path,
+    resume: bool = False,
+    device: str = "auto",
+    progress: bool = True,
+    max_minutes: float = 0.0,
 ) -> Path:
-    """Train (or continue) a run in `out`; returns the path of its latest model.pt."""
+    """Train (or continue) a run in `out`; returns the path of its latest model.pt. With `max_minutes` > 0
+    the run saves its state and stops after the first step that ends past that budget (all ranks at the
+    same step); `resume=True` continues it. The budget is how this call runs, not part of the run's
+    config, so each resumed call may have its own."""
     dist = Dist.from_env(device)
     torch.manual_seed(cfg.seed + dist.rank)
     model = PHiM(get_config(cfg.config)).to(dist.device).train()
@@ -205,7 +214,16 @@ def train(
         (out / "train.json").write_text(json.dumps(_plain(cfg), indent=2) + "\n")
     logger = _Logger(out, start) if dist.is_main else None
     try:
-        _loop(cfg, out, model, step_fn, opt, dist, start, logger, progress)
+        clock = _Budget(max_minutes, dist)
+        last = _loop(cfg, out, model, step_fn, opt, dist, start, logger, progress, clock)
+        if last < cfg.steps:
+            log.info(
+                "stopped at step %d of %d after %.1f minutes (the --max-minutes budget); state saved, "
+                "continue with --resume",
+                last,
+                cfg.steps,
+                clock.minutes(),
+            )
     finally:
         if logger is not None:
             logger.close()
@@ -213,12 +231,29 @@ def train(
     return out / "model.pt"
 
 
-def _loop(cfg, out, model, step_fn, opt, dist: Dist, start: int, logger, progress: bool) -> None:
+class _Budget:
+    """Wall-clock budget of one train() call; under DDP all ranks stop at the step where one runs out."""
+
+    def __init__(self, max_minutes: float, dist: Dist):
+        self.t0, self.limit_s, self.dist = time.perf_counter(), max_minutes * 60.0, dist
+
+    def minutes(self) -> float:
+        return (time.perf_counter() - self.t0) / 60.0
+
+    def spent(self) -> bool:
+        return self.limit_s > 0 and self.dist.any(time.perf_counter() - self.t0 >= self.limit_s)
+
+
+def _loop(
+    cfg, out, model, step_fn, opt, dist: Dist, start: int, logger, progress: bool, clock: _Budget
+) -> int:
+    """Steps start + 1 .. cfg.steps, or fewer when the clock runs out; returns the last step done."""
     from model.train.progress import Progress
 
     bar = Progress(cfg.steps, start, enabled=progress and dist.is_main)
     batches = iter(_loader(cfg, model, dist, start))
     t_last, n_last = time.perf_counter(), start
+    step = start
     for step in range(start + 1, cfg.steps + 1):
         batch: list[TrainSample] = next(batches)
         with dist.autocast(cfg.amp):
@@ -238,6 +273,10 @@ def _loop(cfg, out, model, step_fn, opt, dist: Dist, start: int, logger, progres
                 row = _row(step, parts, lr, rate)
                 logger.write(row)
                 bar.update(step, row)
-        if dist.is_main and (step % cfg.checkpoint_every == 0 or step == cfg.steps):
+        stop = clock.spent()
+        if dist.is_main and (step % cfg.checkpoint_every == 0 or step == cfg.steps or stop):
             _save(out, step, model, opt, cfg)
+        if stop:
+            break
     bar.close()
+    return step

@@ -1,6 +1,7 @@
-"""Targets: VEHICLE (body + cabin + axles, or one box for trucks and buses), PEDESTRIAN (legs, torso, head),
-CYCLIST (bicycle + rider). Candidates are drawn densely along lanes and sidewalks, then a configured number is
-kept inside the placement radius (and a few beyond it), skipping any that would overlap what is placed.
+"""Targets: VEHICLE (sedans, hatchbacks/SUVs, pickups, trucks and buses, with rear lights), PEDESTRIAN
+(legs, torso, head), CYCLIST (bicycle + rider). Candidates are drawn densely along lanes and sidewalks,
+then a configured number is kept inside the placement radius (and a few beyond it), skipping any that would
+overlap what is placed.
 
 A label box is (x, y, z, l, w, h, yaw) with z the box centre; the solids of an object lie inside its box.
 """
@@ -16,9 +17,14 @@ from model.data.sim import stats
 from model.data.sim.clutter import sidewalk_spot
 from model.data.sim.ground import Ground
 from model.data.sim.layout import Occupancy, Road, crossing_span, footprint
-from model.data.sim.raycast import SolidList
+from model.data.sim.raycast import Num, SolidList
 
 PAINT = np.array([0.06, 0.12, 0.25, 0.35, 0.5, 0.7])  # car paint reflectivities: black .. white
+SEDAN, HATCHBACK, PICKUP = 0, 1, 2  # car body shapes (hatchback stands for SUVs and vans too)
+CAR_SHAPES = (0.35, 0.5, 0.15)  # their shares of cars
+CABIN_BEHIND = ((0.17, 0.25), (0.02, 0.06), (0.3, 0.4))  # what follows the cabin (boot, hatch, bed) / length
+TRUCK_SHARE = 0.6  # of large vehicles; the rest are buses
+LIGHT_DEPTH = 0.02  # metres: the rear lights fill the back of the label box, the body ends in front of them
 
 
 @dataclass(frozen=True)
@@ -171,28 +177,100 @@ def select(
     return Candidates(cands.boxes[idx], cands.large[idx])
 
 
-def _offset(boxes: np.ndarray, along: np.ndarray) -> np.ndarray:
-    """(K, 7) boxes, (K,) metres along each heading -> (K, 2) points."""
-    return boxes[:, :2] + along[:, None] * np.stack([np.cos(boxes[:, 6]), np.sin(boxes[:, 6])], 1)
+def _offset(boxes: np.ndarray, along: Num, across: Num = 0.0) -> np.ndarray:
+    """(K, 7) boxes, metres along each heading and to its left (scalars or (K,)) -> (K, 2) points."""
+    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    return boxes[:, :2] + np.stack([along * c - across * s, along * s + across * c], 1)
+
+
+def _segment(
+    solids: SolidList,
+    boxes: np.ndarray,
+    span: tuple[Num, Num],
+    z: tuple[Num, Num],
+    width: Num,
+    refl: Num,
+    porosity: float = 0.0,
+    across: Num = 0.0,
+) -> None:
+    """One solid per vehicle, from span[1] to span[0] metres along its heading (front > rear)."""
+    front, rear = span
+    centre = _offset(boxes, (np.asarray(front) + rear) / 2, across)
+    solids.boxes(centre, z[0], z[1], np.asarray(front) - rear, width, boxes[:, 6], refl, porosity)
 
 
 def vehicle_solids(solids: SolidList, rng: np.random.Generator, cands: Candidates) -> None:
-    """Cars: body, a narrower cabin (glass: dark, partly see-through) and two axle blocks; trucks and buses:
-    one body box above the axles."""
+    """Every vehicle: axles with wheels under the body and retroreflective rear lights; cars as sedans,
+    hatchbacks/SUVs or pickups, large vehicles as trucks (cab + cargo box) or buses (docs/simulator.md)."""
     b, k = cands.boxes, len(cands.boxes)
-    base, length, w, h, yaw = b[:, 2] - b[:, 5] / 2, b[:, 3], b[:, 4], b[:, 5], b[:, 6]
+    base, length, w, _, _ = _parts(b)
     clear = np.where(cands.large, rng.uniform(0.4, 0.6, k), rng.uniform(0.18, 0.3, k))
-    body_top = np.where(cands.large, base + h, base + h * rng.uniform(0.5, 0.6, k))
     paint = rng.choice(PAINT, k) * rng.uniform(0.8, 1.2, k)
-    solids.boxes(b[:, :2], base + clear, body_top, length, w, yaw, paint)
     for sign in (-1.0, 1.0):  # axles with their wheels, seen through the gap under the body
         axle = _offset(b, sign * (length / 2 - np.minimum(0.9, length * 0.2)))
-        solids.boxes(axle, base, base + clear + 0.05, 0.65, w * 0.96, yaw, rng.uniform(0.03, 0.08, k))
+        solids.boxes(axle, base, base + clear + 0.05, 0.65, w * 0.96, b[:, 6], rng.uniform(0.03, 0.08, k))
+    light_z = base + clear + np.where(cands.large, 0.5, rng.uniform(0.35, 0.55, k))
+    lights = (-length / 2 + LIGHT_DEPTH, -length / 2)
+    for side in (-1.0, 1.0):  # tail lights with their retroreflectors, at the back corners: saturated returns
+        height = (light_z - 0.08, light_z + 0.08)
+        _segment(solids, b, lights, height, 0.3, 1.0, across=side * (w / 2 - 0.2))
     car = ~cands.large
-    cabin_l = length[car] * rng.uniform(0.45, 0.6, int(car.sum()))
-    centre = _offset(b[car], -length[car] * rng.uniform(0.0, 0.1, len(cabin_l)))
-    glass = rng.uniform(0.05, 0.15, len(cabin_l))
-    solids.boxes(centre, body_top[car], base[car] + h[car], cabin_l, w[car] * 0.88, yaw[car], glass, 0.25)
+    _car_solids(solids, rng, b[car], clear[car], paint[car])
+    _large_solids(solids, rng, b[cands.large], clear[cands.large], paint[cands.large])
+
+
+def _car_solids(
+    solids: SolidList, rng: np.random.Generator, b: np.ndarray, clear: np.ndarray, paint: np.ndarray
+) -> None:
+    """A bonnet lower than the rest of the body, a glass cabin with a raked windscreen that ends above a
+    boot (sedan), near the back (hatchback, SUV, van) or before an open bed (pickup)."""
+    k = len(b)
+    base, length, w, h, _ = _parts(b)
+    half, back = length / 2, -length / 2 + LIGHT_DEPTH
+    shape = rng.choice(len(CAR_SHAPES), k, p=CAR_SHAPES)
+    body_top = base + h * rng.uniform(0.5, 0.6, k)
+    windscreen = half - length * rng.uniform(0.24, 0.32, k)  # where the bonnet ends
+    boot = length * np.choose(shape, [rng.uniform(*CABIN_BEHIND[s], k) for s in range(len(CAR_SHAPES))])
+    pickup = shape == PICKUP
+    _segment(solids, b, (half, windscreen), (base + clear, body_top - rng.uniform(0.03, 0.12, k)), w, paint)
+    body_end = np.where(pickup, -half + boot, back)
+    _segment(solids, b, (windscreen, body_end), (base + clear, body_top), w, paint)
+    sill = (body_top + base + h) / 2  # the windscreen leans back from the bonnet to the roof
+    glass = rng.uniform(0.05, 0.15, k)
+    cabin_end = -half + np.where(pickup, boot + 0.1, boot)
+    _segment(solids, b, (windscreen, cabin_end), (body_top, sill), w * 0.88, glass, 0.25)
+    roof = (windscreen - rng.uniform(0.3, 0.6, k), cabin_end)
+    _segment(solids, b, roof, (sill, base + h), w * 0.88, glass, 0.25)
+    _bed(solids, b[pickup], (-half + boot)[pickup], clear[pickup], body_top[pickup], paint[pickup])
+
+
+def _bed(
+    solids: SolidList, b: np.ndarray, front: np.ndarray, clear: np.ndarray, top: np.ndarray, paint: np.ndarray
+) -> None:
+    """A pickup's open bed from `front` to the back: a floor well below the sides, two side walls and a
+    tailgate."""
+    base, length, w, _, _ = _parts(b)
+    back = -length / 2 + LIGHT_DEPTH
+    floor = np.maximum(base + clear + 0.1, top - 0.45)
+    _segment(solids, b, (front, back), (base + clear, floor), w, paint)
+    for side in (-1.0, 1.0):
+        _segment(solids, b, (front, back), (floor, top), 0.08, paint, across=side * (w / 2 - 0.04))
+    _segment(solids, b, (back + 0.06, back), (floor, top), w, paint)
+
+
+def _large_solids(
+    solids: SolidList, rng: np.random.Generator, b: np.ndarray, clear: np.ndarray, paint: np.ndarray
+) -> None:
+    """Trucks: a cab lower than the cargo box behind it; buses: one box."""
+    k = len(b)
+    base, length, w, h, _ = _parts(b)
+    half, back = length / 2, -length / 2 + LIGHT_DEPTH
+    t = rng.random(k) < TRUCK_SHARE  # trucks; the rest are buses
+    cab_end = half - np.minimum(2.4, 0.3 * length)
+    cab_top = base + h * rng.uniform(0.7, 0.85, k)
+    _segment(solids, b[t], (half[t], cab_end[t]), (base[t] + clear[t], cab_top[t]), w[t] * 0.96, paint[t])
+    cargo_front = np.where(t, cab_end - 0.2, half)
+    _segment(solids, b, (cargo_front, back), (base + clear, base + h), w, paint)
 
 
 def _parts(boxes: np.ndarray) -> tuple[np.ndarray, ...]:
