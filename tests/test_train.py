@@ -193,20 +193,27 @@ def test_eval_scores_every_fill_level_and_predictions_round_trip(tmp_path: Path)
     sizes = [len(t) for t in r.truths]
     assert sizes == sorted(sizes) and sizes[-1] == len(scan.gt)
     result = score([r])
-    assert set(result) == {"LEVEL_1", "LEVEL_2", "by_buffered_sectors"}
-    assert set(result["by_buffered_sectors"]) == {"0", "1", "2", "3"}
-    assert result["LEVEL_1"] == result["by_buffered_sectors"]["3"]["LEVEL_1"]
+    assert set(result) == {"LEVEL_1", "LEVEL_2", "by_buffered_sectors", "by_buffered_sectors_global"}
+    for view in ("by_buffered_sectors", "by_buffered_sectors_global"):
+        assert set(result[view]) == {"0", "1", "2", "3"}
+        assert result["LEVEL_1"] == result[view]["3"]["LEVEL_1"]
     # the ground truth (boxes with points: Waymo drops the others) as predictions scores 1 at every fill level
     seen = [t.select(t.num_points > 0) for t in r.truths]
     perfect = ScanResult(
         r.name, [Predictions(t.boxes, np.ones(len(t), np.float32), t.labels) for t in seen], seen
     )
     scored = score([perfect])
+    vehicle = CLASS_NAMES.index("VEHICLE")
+    on_scene = []  # on the whole turn, a perfect partial prediction finds the share of the boxes it has seen
     for b, truth in enumerate(seen):
         present = [CLASS_NAMES[c] for c in np.unique(truth.labels)]
         assert present and all(
             scored["by_buffered_sectors"][str(b)]["LEVEL_2"][c]["AP"] == 1.0 for c in present
         )
+        on_scene.append(scored["by_buffered_sectors_global"][str(b)]["LEVEL_2"]["VEHICLE"]["AP"])
+        share = (truth.labels == vehicle).sum() / (seen[-1].labels == vehicle).sum()
+        assert on_scene[-1] == pytest.approx(share, abs=0.03)
+    assert on_scene == sorted(on_scene) and on_scene[0] < 0.6 and on_scene[-1] == 1.0
     write_predictions(tmp_path / "p.npz", [r])
     back = read_predictions(tmp_path / "p.npz")
     np.testing.assert_array_equal(back[r.name].boxes, r.predictions[-1].boxes)
@@ -227,7 +234,11 @@ def test_phim_eval_command_prints_the_documented_json(tmp_path: Path):
     done = subprocess.run([phim, *args, *extra], capture_output=True, text=True, timeout=300, cwd=REPO)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout)
-    for top in (result, *result["by_buffered_sectors"].values()):
+    for top in (
+        result,
+        *result["by_buffered_sectors"].values(),
+        *result["by_buffered_sectors_global"].values(),
+    ):
         for level in ("LEVEL_1", "LEVEL_2"):
             assert set(top[level]) == {"VEHICLE", "PEDESTRIAN", "CYCLIST", "mean"}
             assert all(0.0 <= v <= 1.0 for c in top[level].values() for v in c.values())

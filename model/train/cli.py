@@ -125,9 +125,14 @@ def eval_cmd(
         return
     typer.echo(f"{what}, data {data}, {count} scans in {time.perf_counter() - t0:.1f} s")
     typer.echo(format_table(metrics, count_ground_truths([r.truths[-1] for r in results])))
+    typer.echo(
+        "LEVEL_1 mean AP / APH by buffered sectors: on the sectors seen | on the whole turn (Figure 8)"
+    )
     for b, m in metrics["by_buffered_sectors"].items():
-        l1 = m["LEVEL_1"]
-        typer.echo(f"buffered {b}: LEVEL_1 mean AP {l1['mean']['AP']:.3f} APH {l1['mean']['APH']:.3f}")
+        seen, scene = m["LEVEL_1"]["mean"], metrics["by_buffered_sectors_global"][b]["LEVEL_1"]["mean"]
+        typer.echo(
+            f"buffered {b}: {seen['AP']:.3f} / {seen['APH']:.3f} | {scene['AP']:.3f} / {scene['APH']:.3f}"
+        )
 
 
 def diagnose_cmd(
