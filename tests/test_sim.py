@@ -181,9 +181,14 @@ def test_range_limit():
     assert len(scan.gt) > 0
 
 
+def _flat_street() -> Ground:
+    """Level ground 1.73 m below the sensor, no roads or curbs."""
+    return Ground(1.73, np.zeros(2), np.zeros(0), np.zeros((0, 2)), np.zeros(0), 0.15, np.zeros((0, 8)))
+
+
 def _two_box_scene(front_height: float | None) -> Scene:
     """A flat empty street, a car 20 m ahead and optionally a box of the given height 10 m ahead."""
-    ground = Ground(1.73, np.zeros(2), np.zeros(0), np.zeros((0, 2)), np.zeros(0), 0.15, np.zeros((0, 8)))
+    ground = _flat_street()
     solids = SolidList()
     car = np.array([20.0, 0.0, -1.73 + 0.8, 4.5, 1.9, 1.6, 0.0])
     solids.boxes(car[None, :2], -1.73, -1.73 + 1.6, 4.5, 1.9, 0.0, 0.5)
@@ -209,7 +214,7 @@ def test_a_box_behind_another_gets_fewer_points():
 def _one_vehicle(box: np.ndarray, large: bool, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """One vehicle (label box (7,)) on a flat empty street -> its points (N, 4), and u: where each point lies
     along the heading, as a fraction of the length (+0.5 the front, -0.5 the back)."""
-    ground = Ground(1.73, np.zeros(2), np.zeros(0), np.zeros((0, 2)), np.zeros(0), 0.15, np.zeros((0, 8)))
+    ground = _flat_street()
     solids = SolidList()
     rng = np.random.default_rng(seed)
     actors.vehicle_solids(solids, rng, actors.Candidates(box[None], np.array([large])))

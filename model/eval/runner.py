@@ -85,6 +85,7 @@ def score(results: Sequence[ScanResult], cfg: MetricsConfig | None = None) -> di
     preds = [[r.predictions[b] for r in results] for b in range(n)]
     seen = {str(b): evaluate(preds[b], [r.truths[b] for r in results], cfg) for b in range(n)}
     whole = [r.truths[-1] for r in results]
+    # the full turn has seen everything: its score is the same both ways, so it is computed once
     scene = {str(b): evaluate(preds[b], whole, cfg) for b in range(n - 1)} | {str(n - 1): seen[str(n - 1)]}
     full = seen[str(n - 1)]
     return {
