@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -211,14 +212,13 @@ def test_a_box_behind_another_gets_fewer_points():
     assert counts[3.5] == 0  # fully hidden behind a taller box
 
 
-def _one_vehicle(box: np.ndarray, large: bool, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """One vehicle (label box (7,)) on a flat empty street -> its points (N, 4), and u: where each point lies
-    along the heading, as a fraction of the length (+0.5 the front, -0.5 the back)."""
-    ground = _flat_street()
+def _one_actor(box: np.ndarray, draw: Callable[[SolidList, np.random.Generator], None], seed: int):
+    """One object (label box (7,), its solids drawn by `draw`) on a flat empty street -> its points (N, 4),
+    and u: where each point lies along the heading, as a fraction of the length (+0.5 the front)."""
     solids = SolidList()
     rng = np.random.default_rng(seed)
-    actors.vehicle_solids(solids, rng, actors.Candidates(box[None], np.array([large])))
-    scene = Scene((), ground, solids.build(), box[None], np.zeros(1, np.int64))
+    draw(solids, rng)
+    scene = Scene((), _flat_street(), solids.build(), box[None], np.zeros(1, np.int64))
     cfg = replace(SimConfig(), dropout=0.0)
     points, _ = cast_scene(
         rng, scene, Rays.spinning(cfg.firings, sensor_spec(Sensor.HDL64E).elevations_deg), cfg
@@ -226,6 +226,11 @@ def _one_vehicle(box: np.ndarray, large: bool, seed: int) -> tuple[np.ndarray, n
     points = points[points_in_boxes(points[:, :3], box[None].astype(np.float32))[:, 0]]
     u = (points[:, 0] - box[0]) * math.cos(box[6]) + (points[:, 1] - box[1]) * math.sin(box[6])
     return points, u / box[3]
+
+
+def _one_vehicle(box: np.ndarray, large: bool, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    cands = actors.Candidates(box[None], np.array([large]))
+    return _one_actor(box, lambda solids, rng: actors.vehicle_solids(solids, rng, cands), seed)
 
 
 def test_a_vehicle_shows_its_front_and_back():
@@ -246,6 +251,26 @@ def test_a_vehicle_shows_its_front_and_back():
                 saturated.append(int((_one_vehicle(facing, large, seed)[0][:, 3] >= 0.99).sum()))
             assert saturated[0] >= 5 and saturated[1] == 0, (seed, large, saturated)
     assert higher_back >= 10
+
+
+def test_pedestrians_and_cyclists_show_their_front():
+    """Seen side-on, a pedestrian's feet point ahead and the chest and head lean ahead of the hips; a
+    cyclist's arms, handlebar and head lie ahead of the middle, the hips behind it."""
+    ped, cyclist = (0.78, 0.72, 1.81), (1.86, 0.68, 1.79)
+    feet_ahead = leaning = rider_ahead = 0
+    for seed in range(12):
+        box = np.array([0.0, 6.0, -1.73 + ped[2] / 2, *ped, 0.0])
+        points, u = _one_actor(box, lambda s, r, b=box: actors.pedestrian_solids(s, r, b[None]), seed)
+        up = points[:, 2] + 1.73  # height above the street
+        assert len(points) > 100
+        feet_ahead += np.mean(u[(up > 0.02) & (up < 0.1)]) > 0.05  # the street below them left out
+        leaning += np.mean(u[up > 1.2]) > np.mean(u[(up > 0.9) & (up < 1.1)]) + 0.02
+        box = np.array([0.0, 6.0, -1.73 + cyclist[2] / 2, *cyclist, 0.0])
+        points, u = _one_actor(box, lambda s, r, b=box: actors.cyclist_solids(s, r, b[None]), seed)
+        up = points[:, 2] + 1.73
+        assert len(points) > 100
+        rider_ahead += np.mean(u[up > 1.25]) > 0.03
+    assert feet_ahead >= 10 and leaning >= 10 and rider_ahead >= 10, (feet_ahead, leaning, rider_ahead)
 
 
 def test_cli_writes_a_png_and_bench_reports(tmp_path):

@@ -1,5 +1,6 @@
 """Targets: VEHICLE (sedans, hatchbacks/SUVs, pickups, trucks and buses, with rear lights), PEDESTRIAN
-(legs, torso, head), CYCLIST (bicycle + rider). Candidates are drawn densely along lanes and sidewalks,
+(legs and feet, a torso leaning forward, head, sometimes a backpack), CYCLIST (bicycle with a handlebar +
+a rider leaning to it). Candidates are drawn densely along lanes and sidewalks,
 then a configured number is kept inside the placement radius (and a few beyond it), skipping any that would
 overlap what is placed.
 
@@ -25,6 +26,7 @@ CAR_SHAPES = (0.35, 0.5, 0.15)  # their shares of cars
 CABIN_BEHIND = ((0.17, 0.25), (0.02, 0.06), (0.3, 0.4))  # what follows the cabin (boot, hatch, bed) / length
 TRUCK_SHARE = 0.6  # of large vehicles; the rest are buses
 LIGHT_DEPTH = 0.02  # metres: the rear lights fill the back of the label box, the body ends in front of them
+BACKPACK_SHARE = 0.35  # of pedestrians
 
 
 @dataclass(frozen=True)
@@ -279,25 +281,45 @@ def _parts(boxes: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def pedestrian_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray) -> None:
-    """Legs (one cylinder), torso (a box across the heading), head (a small cylinder)."""
+    """Legs (one cylinder) with the feet pointing ahead, a torso across the heading whose chest leans
+    forward over the hips, the head ahead of the shoulders; one in three carries a backpack."""
     k = len(boxes)
-    base, length, w, h, yaw = _parts(boxes)
+    base, length, w, h, _ = _parts(boxes)
+    half = length / 2
     clothes = rng.uniform(0.05, 0.5, k)
     legs = np.minimum(rng.uniform(0.13, 0.18, k), np.minimum(length, w) / 2)
     solids.cylinders(boxes[:, :2], base, base + 0.47 * h, legs, clothes * rng.uniform(0.7, 1.0, k))
+    toes = np.minimum(legs + rng.uniform(0.08, 0.14, k), half)
+    _segment(solids, boxes, (toes, -0.08), (base, base + 0.09), np.minimum(0.3, w), rng.uniform(0.05, 0.3, k))
     torso_l, torso_w = np.minimum(rng.uniform(0.22, 0.3, k), length), np.minimum(rng.uniform(0.4, 0.5, k), w)
-    solids.boxes(boxes[:, :2], base + 0.47 * h, base + 0.84 * h, torso_l, torso_w, yaw, clothes)
-    solids.cylinders(boxes[:, :2], base + 0.84 * h, base + h, 0.1, rng.uniform(0.2, 0.4, k))
+    lean = np.minimum(rng.uniform(0.04, 0.1, k), half - torso_l / 2)  # of the chest over the hips
+    waist, shoulders = base + 0.62 * h, base + 0.84 * h
+    _segment(solids, boxes, (torso_l / 2, -torso_l / 2), (base + 0.47 * h, waist), torso_w, clothes)
+    _segment(solids, boxes, (lean + torso_l / 2, lean - torso_l / 2), (waist, shoulders), torso_w, clothes)
+    head = _offset(boxes, np.minimum(lean + 0.05, half - 0.1))
+    solids.cylinders(head, shoulders, base + h, 0.1, rng.uniform(0.2, 0.4, k))
+    bag = rng.random(k) < BACKPACK_SHARE
+    rear = (lean - torso_l / 2)[bag]  # the backpack hangs on the back of the chest
+    depth = np.minimum(rng.uniform(0.12, 0.2, bag.sum()), rear + half[bag])
+    height = (waist[bag] - 0.05, shoulders[bag] - 0.05)
+    _segment(solids, boxes[bag], (rear, rear - depth), height, 0.3, rng.uniform(0.1, 0.5, bag.sum()))
 
 
 def cyclist_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray) -> None:
-    """A bicycle (thin, mostly see-through plate up to 1 m) and a rider: legs, torso, head."""
+    """A bicycle (thin, mostly see-through plate up to 1 m) with a handlebar across its front, and a rider
+    leaning forward: legs, hips over the saddle behind the middle, chest ahead of them, arms reaching to the
+    handlebar, the head ahead of the chest."""
     k = len(boxes)
     base, length, w, h, yaw = _parts(boxes)
     solids.boxes(boxes[:, :2], base, base + 1.0, length * 0.95, 0.12, yaw, rng.uniform(0.3, 0.6, k), 0.5)
+    bar, grip = 0.3 * length, base + rng.uniform(0.95, 1.1, k)
+    _segment(solids, boxes, (bar + 0.04, bar - 0.04), (grip - 0.04, grip), np.minimum(0.6, w), 0.4)
     clothes = rng.uniform(0.05, 0.5, k)
     solids.cylinders(boxes[:, :2], base + 0.45, base + 1.0, 0.12, clothes)
-    torso = _offset(boxes, -0.1 * length)
     torso_w = np.minimum(rng.uniform(0.4, 0.5, k), w)
-    solids.boxes(torso, base + 1.0, base + h - 0.27, 0.35, torso_w, yaw, clothes)
-    solids.cylinders(_offset(boxes, 0.05 * length), base + h - 0.27, base + h, 0.1, rng.uniform(0.2, 0.4, k))
+    waist, shoulders = base + 1.2, base + h - 0.27
+    _segment(solids, boxes, (-0.02 * length, -0.2 * length), (base + 1.0, waist), torso_w, clothes)
+    _segment(solids, boxes, (0.08 * length, -0.1 * length), (waist, shoulders), torso_w, clothes)
+    _segment(solids, boxes, (bar, 0.08 * length), (grip, shoulders - 0.1), torso_w, clothes, 0.6)  # arms
+    head = _offset(boxes, 0.1 * length)
+    solids.cylinders(head, shoulders, base + h, 0.1, rng.uniform(0.2, 0.4, k))
