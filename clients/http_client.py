@@ -1,7 +1,8 @@
 """HTTP client: msgpack sectors to `POST /v1/streams/{id}/sectors`, JSON for the other routes.
 
-The sync path runs on keep-alive `http.client` connections (`clients.http_conn`, the leaner stack: about
-1 ms less per 455 KB sector than a sync httpx client); the async path on one `httpx.AsyncClient` (made on
+The sync path runs on keep-alive connections of its own over plain sockets (`clients.http_conn`, the leaner
+stack: about 1.3 ms less per 455 KB sector than a sync httpx client, 0.2 ms less than `http.client`); the
+async path on one `httpx.AsyncClient` (made on
 first use). Both keep their connections open between requests. The timeout applies to each send and
 receive; `RequestTimeout` when one passes.
 """

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import http.client
 import http.server
 import threading
 from collections.abc import Iterator
@@ -33,6 +34,22 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         self.wfile.flush()
         if _Handler.drop_after_reply:
             self.close_connection = True
+
+    def do_GET(self) -> None:
+        """Raw responses of the shapes a server may send: chunked, to the end of the connection, after a
+        1xx, without a body, or not HTTP at all."""
+        raw = {
+            "/base/chunked": b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\nContent-Type: a/b\r\n\r\n"
+            b"3\r\nabc\r\n4;ext=1\r\ndefg\r\n0\r\nX-Trailer: 1\r\n\r\n",
+            "/base/to-end": b"HTTP/1.1 200 OK\r\nConnection: close\r\n\r\nall of it",
+            "/base/continue": b"HTTP/1.1 100 Continue\r\n\r\n"
+            b"HTTP/1.1 201 Created\r\nContent-Length: 2\r\n\r\nok",
+            "/base/empty": b"HTTP/1.1 204 No Content\r\n\r\n",
+            "/base/garbage": b"SSH-2.0-OpenSSH\r\n\r\n",
+        }[self.path]
+        self.wfile.write(raw)
+        self.wfile.flush()
+        self.close_connection = self.path in ("/base/to-end", "/base/garbage")
 
     def log_message(self, format: str, *args: object) -> None:  # quiet
         pass
@@ -85,6 +102,26 @@ def test_a_connection_the_server_closed_is_replaced_before_reuse() -> None:
         pool.close()
     assert bodies == [b"/base/x 3 b'123'"] * 3
     assert len(_Handler.connections) == 3  # each reply's connection was dropped by the server
+
+
+def test_responses_of_every_framing_are_read_whole() -> None:
+    with http_server(drop_after_reply=False) as url:
+        pool = ConnectionPool(url, timeout_s=5, connect_timeout_s=5)
+        got = [pool.request("GET", f"/{p}", None, {}) for p in ("chunked", "empty", "continue", "to-end")]
+        assert [(r.status, r.content_type, r.body) for r in got] == [
+            (200, "a/b", b"abcdefg"),
+            (204, "", b""),
+            (201, "", b"ok"),
+            (200, "", b"all of it"),
+        ]
+        assert len(_Handler.connections) == 1  # kept alive until the server said close
+        assert pool.request("POST", "/after", b"x", {}).body == b"/base/after 1 b'x'"
+        assert len(_Handler.connections) == 2
+        with pytest.raises(http.client.BadStatusLine):
+            pool.request("GET", "/garbage", None, {})
+        with pytest.raises(ValueError, match="line break"):
+            pool.request("GET", "/x", None, {"X-Bad": "a\r\nInjected: 1"})
+        pool.close()
 
 
 @pytest.mark.parametrize("url", ["ftp://host/", "127.0.0.1:8080", "http://"])

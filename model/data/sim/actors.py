@@ -282,7 +282,7 @@ def _parts(boxes: np.ndarray) -> tuple[np.ndarray, ...]:
 
 def pedestrian_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray) -> None:
     """Legs (one cylinder) with the feet pointing ahead, a torso across the heading whose chest leans
-    forward over the hips, the head ahead of the shoulders; one in three carries a backpack."""
+    forward over the hips, the head ahead of the shoulders; 35 % carry a backpack."""
     k = len(boxes)
     base, length, w, h, _ = _parts(boxes)
     half = length / 2
