@@ -212,7 +212,9 @@ def test_a_box_behind_another_gets_fewer_points():
     assert counts[3.5] == 0  # fully hidden behind a taller box
 
 
-def _one_actor(box: np.ndarray, draw: Callable[[SolidList, np.random.Generator], None], seed: int):
+def _one_actor(
+    box: np.ndarray, draw: Callable[[SolidList, np.random.Generator], None], seed: int
+) -> tuple[np.ndarray, np.ndarray]:
     """One object (label box (7,), its solids drawn by `draw`) on a flat empty street -> its points (N, 4),
     and u: where each point lies along the heading, as a fraction of the length (+0.5 the front)."""
     solids = SolidList()

@@ -1,8 +1,7 @@
 """Targets: VEHICLE (sedans, hatchbacks/SUVs, pickups, trucks and buses, with rear lights), PEDESTRIAN
 (legs and feet, a torso leaning forward, head, sometimes a backpack), CYCLIST (bicycle with a handlebar +
-a rider leaning to it). Candidates are drawn densely along lanes and sidewalks,
-then a configured number is kept inside the placement radius (and a few beyond it), skipping any that would
-overlap what is placed.
+a rider leaning to it). Candidates are drawn densely along lanes and sidewalks, then a configured number is
+kept inside the placement radius (and a few beyond it), skipping any that would overlap what is placed.
 
 A label box is (x, y, z, l, w, h, yaw) with z the box centre; the solids of an object lie inside its box.
 """
@@ -195,7 +194,7 @@ def _segment(
     porosity: float = 0.0,
     across: Num = 0.0,
 ) -> None:
-    """One solid per vehicle, from span[1] to span[0] metres along its heading (front > rear)."""
+    """One solid per object, from span[1] to span[0] metres along its heading (front > rear)."""
     front, rear = span
     centre = _offset(boxes, (np.asarray(front) + rear) / 2, across)
     solids.boxes(centre, z[0], z[1], np.asarray(front) - rear, width, boxes[:, 6], refl, porosity)
