@@ -1,4 +1,4 @@
-"""`phim model ...` and `phim bench model` commands."""
+"""`phim model ...`, `phim bench model` and `phim bench ops` commands."""
 
 from __future__ import annotations
 
@@ -96,6 +96,42 @@ def bench_model_cmd(
     typer.echo("\n| metric | value |\n|---|---|")
     for key in ("p50_ms", "p90_ms", "mean_ms", "per_sector_p50_ms", "peak_mem_mb", "full_turn_peak_mem_mb"):
         typer.echo(f"| {key} | {result[key]} |")
+
+
+@bench_app.command("ops")
+def bench_ops_cmd(
+    config: ConfigOpt = "paper",
+    points: PointsOpt = None,
+    device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "cpu",
+    checkpoint: Annotated[
+        str | None, typer.Option(help="weights to load: a file, or 'default' (default: fresh init)")
+    ] = None,
+    rows: Annotated[int, typer.Option(help="functions to list, most ops first")] = 25,
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
+) -> None:
+    """Torch ops (kernel launches on a GPU), views and host syncs of one streaming step, by model function."""
+    from model.checkpoint import checkpoint_path, load_checkpoint
+    from model.detector import PHiM
+    from model.op_count import count_ops
+
+    logging.basicConfig(level=logging.WARNING)
+    tune_malloc()
+    dev = pick_device(device)
+    cfg = get_config(config)
+    model = load_checkpoint(checkpoint_path(checkpoint), cfg, dev) if checkpoint else PHiM(cfg).to(dev)
+    turn, source = _load_turn(points, fallback_kitti=True)
+    report = count_ops(model.eval(), turn)
+    if as_json:
+        typer.echo(json.dumps(report.to_dict() | {"input": source}))
+        return
+    typer.echo(f"input: {source}; config {report.config}, device {report.device}, scan {report.scan}")
+    typer.echo("\n| where | ops | views | host syncs |\n|---|---|---|---|")
+    for r in report.rows[:rows]:
+        typer.echo(f"| {r.where} | {r.ops} | {r.views} | {r.syncs} |")
+    typer.echo(f"| **all** | **{report.ops}** | {report.views} | **{report.syncs}** |")
+    typer.echo(f"| all but the selective scan | **{report.ops_outside_scan}** | | |")
+    if report.cuda_kernels is not None:
+        typer.echo(f"| CUDA kernels launched | {report.cuda_kernels} | | |")
 
 
 if __name__ == "__main__":  # `python -m model.cli`: these commands without the server's packages (GPU hosts)

@@ -48,9 +48,11 @@ def bn_relu(bn: nn.BatchNorm1d, x: SparseTensor) -> SparseTensor:
 
 @dataclass(frozen=True)
 class DownContext:
-    """What DecomposedUp needs: the rule books of down-sampling convs (a) and (c)."""
+    """The rule books of down-sampling convs (a), (b), (c): DecomposedUp needs (a) and (c); a block with the
+    same kernel and stride over the same sites reuses all three (they depend on the sites only)."""
 
     rz: Rulebook  # conv (a): input = the block's sites
+    sub: Rulebook  # conv (b): input = the sites after (a); the same rule book as (a) when s == 1
     theta_z: Rulebook  # conv (c): input = the sites after (a) / (b)
 
 
@@ -76,14 +78,17 @@ class DecomposedDown(nn.Module):
         self.conv_tz = SparseConv2d(channels, channels, tz_kernel, (stride, 1), Plane.THETA_Z, subm=subm)
         self.bn_rz, self.bn_sub, self.bn_tz = make_bn(channels), make_bn(channels), make_bn(channels)
 
-    def forward(self, x: SparseTensor) -> tuple[SparseTensor, DownContext]:
-        h, rb_rz = self.conv_rz(x)
+    def forward(self, x: SparseTensor, ctx: DownContext | None = None) -> tuple[SparseTensor, DownContext]:
+        """x (N, C) -> (M, C) and the rule books; a given `ctx` (built for x's sites, this kernel and stride)
+        is reused instead of building them again."""
+        h, rb_rz = self.conv_rz(x, None if ctx is None else ctx.rz)
         h = bn_relu(self.bn_rz, h)
-        h, _ = self.conv_sub(h, rb_rz if self.stride == 1 else None)  # same sites and plane when s == 1
+        rb_sub = ctx.sub if ctx is not None else rb_rz if self.stride == 1 else None  # s == 1: same sites
+        h, rb_sub = self.conv_sub(h, rb_sub)
         h = bn_relu(self.bn_sub, h)
-        h, rb_tz = self.conv_tz(h)
+        h, rb_tz = self.conv_tz(h, None if ctx is None else ctx.theta_z)
         h = bn_relu(self.bn_tz, h)
-        return h, DownContext(rz=rb_rz, theta_z=rb_tz)
+        return h, DownContext(rz=rb_rz, sub=rb_sub, theta_z=rb_tz)
 
 
 class DecomposedUp(nn.Module):

@@ -89,6 +89,31 @@ def conv_gather_indices(cu_seqlens: Tensor, total: int, d_conv: int) -> tuple[Te
     return older, new_state
 
 
+@dataclass(frozen=True)
+class Packing:
+    """Packed sequences and the causal conv's gather indices over them (`conv_gather_indices`).
+
+    Build it once and hand it to every layer that runs over the same packing (the local Mamba layers of
+    all PHiM blocks share two): the index arithmetic is a few dozen small ops, a kernel launch each on a GPU.
+    """
+
+    cu_seqlens: Tensor  # (S + 1,) int64
+    older: Tensor  # (d_conv - 1, T)
+    new_state: Tensor  # (S, d_conv - 1)
+
+    @staticmethod
+    def of(cu_seqlens: Tensor, total: int, d_conv: int) -> Packing:
+        return Packing(cu_seqlens, *conv_gather_indices(cu_seqlens, total, d_conv))
+
+    @property
+    def num_seqs(self) -> int:
+        return self.cu_seqlens.numel() - 1
+
+    @property
+    def total(self) -> int:
+        return self.older.shape[1]
+
+
 class Mamba(nn.Module):
     """Mamba-1 layer on packed sequences: x (T, d_model), cu_seqlens (S + 1,) -> (T, d_model), state."""
 
@@ -123,11 +148,11 @@ class Mamba(nn.Module):
             dt = torch.exp(torch.rand(self.d_inner) * (log_hi - log_lo) + log_lo).clamp(min=cfg.dt_init_floor)
             self.dt_proj.bias.copy_(dt + torch.log(-torch.expm1(-dt)))  # inverse softplus
 
-    def _conv(self, x: Tensor, cu_seqlens: Tensor, conv_state: Tensor) -> tuple[Tensor, Tensor]:
+    def _conv(self, x: Tensor, packing: Packing, conv_state: Tensor) -> tuple[Tensor, Tensor]:
         """Packed causal depthwise conv: x (T, di), conv_state (S, di, d_conv - 1) -> (T, di), new state."""
-        T, di = x.shape
+        di = x.shape[1]
         k = self.cfg.d_conv
-        older, new_idx = conv_gather_indices(cu_seqlens, T, k)  # (k - 1, T), (S, k - 1)
+        older, new_idx = packing.older, packing.new_state  # (k - 1, T), (S, k - 1)
         state_rows = conv_state.to(x.dtype).transpose(1, 2).reshape(-1, di)  # (S * (k - 1), di)
         ext = torch.cat([x, state_rows])  # (T + S * (k - 1), di)
         weight = self.conv1d.weight.view(di, k).t()  # (k, di), row k - 1 multiplies the current token
@@ -137,12 +162,22 @@ class Mamba(nn.Module):
         new_state = ext.index_select(0, new_idx.reshape(-1)).view(-1, k - 1, di)  # (S, k - 1, di)
         return out, new_state.transpose(1, 2).contiguous()  # (T, di), (S, di, k - 1)
 
+    def packing(self, cu_seqlens: Tensor, total: int) -> Packing:
+        return Packing.of(cu_seqlens, total, self.cfg.d_conv)
+
     def forward(
-        self, x: Tensor, cu_seqlens: Tensor, state: MambaState | None = None
+        self, x: Tensor, seqs: Tensor | Packing, state: MambaState | None = None
     ) -> tuple[Tensor, MambaState]:
-        """x (T, d_model) packed; cu_seqlens (S + 1,) int64; state with S rows or None (zeros)."""
+        """x (T, d_model) packed; seqs: cu_seqlens (S + 1,) int64, or a Packing of them built for this layer's
+        d_conv (shared between layers over the same sequences); state with S rows or None (zeros)."""
         cfg = self.cfg
-        S = cu_seqlens.numel() - 1
+        packing = seqs if isinstance(seqs, Packing) else self.packing(seqs, x.shape[0])
+        if packing.total != x.shape[0] or packing.older.shape[0] != cfg.d_conv - 1:
+            raise ValueError(
+                f"packing for {packing.total} tokens and d_conv {packing.older.shape[0] + 1}; "
+                f"got {x.shape[0]} tokens, d_conv {cfg.d_conv}"
+            )
+        cu_seqlens, S = packing.cu_seqlens, packing.num_seqs
         if state is None:
             state = MambaState.zeros(S, self.d_inner, cfg.d_conv, cfg.d_state, x.device, x.dtype)
             h0 = None
@@ -152,7 +187,7 @@ class Mamba(nn.Module):
             h0 = state.ssm
         xz = self.in_proj(x)  # (T, 2 di)
         xi, z = xz.chunk(2, dim=-1)  # (T, di) each
-        xc, conv_state = self._conv(xi, cu_seqlens, state.conv)
+        xc, conv_state = self._conv(xi, packing, state.conv)
         xc = F.silu(xc)  # (T, di)
         dt, B, C = self.x_proj(xc).split([self.dt_rank, cfg.d_state, cfg.d_state], dim=-1)
         delta = F.softplus(self.dt_proj(dt))  # (T, di)

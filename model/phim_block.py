@@ -19,8 +19,8 @@ import torch
 from torch import Tensor, nn
 
 from model.config import BackboneConfig
-from model.decomposed import DecomposedDown, DecomposedUp
-from model.mamba import Mamba, MambaState
+from model.decomposed import DecomposedDown, DecomposedUp, DownContext
+from model.mamba import Mamba, MambaState, Packing
 from model.sparse_tensor import BATCH, THETA, SparseTensor
 
 
@@ -63,10 +63,34 @@ def frustum_cu_seqlens(x: SparseTensor, frustum_theta_bins: int) -> Tensor:
     return torch.cat([counts.new_zeros(1), counts.cumsum(0)])
 
 
-def reverse_packed(x: Tensor, cu_seqlens: Tensor) -> tuple[Tensor, Tensor]:
-    """Reverse every packed sequence: flipping the whole pack reverses each sequence and their order."""
+def reversed_cu_seqlens(cu_seqlens: Tensor) -> Tensor:
+    """cu_seqlens of the pack flipped along dim 0: flipping reverses each sequence and their order."""
     lengths = cu_seqlens.diff().flip(0)
-    return x.flip(0), torch.cat([cu_seqlens.new_zeros(1), lengths.cumsum(0)])
+    return torch.cat([cu_seqlens.new_zeros(1), lengths.cumsum(0)])
+
+
+@dataclass(frozen=True)
+class LocalPackings:
+    """The local Mamba's frustum sequences, forward and reversed. Every block of a backbone runs on the same
+    sites (a block's output keeps its input's), so one is built per forward and shared by all blocks."""
+
+    fwd: Packing
+    bwd: Packing  # of the pack flipped: every frustum reversed, and their order
+
+    @staticmethod
+    def of(x: SparseTensor, frustum_theta_bins: int, d_conv: int) -> LocalPackings:
+        cu = frustum_cu_seqlens(x, frustum_theta_bins)
+        n = x.num_sites
+        return LocalPackings(Packing.of(cu, n, d_conv), Packing.of(reversed_cu_seqlens(cu), n, d_conv))
+
+
+@dataclass(frozen=True)
+class Coarsening:
+    """A block's down-sampling rule books and its global Mamba's packing of the coarse sites: the same for
+    every block with that kernel and stride in one forward (they depend on the sites and the layout only)."""
+
+    down: DownContext
+    global_seqs: Packing
 
 
 class PHiMBlock(nn.Module):
@@ -82,26 +106,38 @@ class PHiMBlock(nn.Module):
         self.norm_global = nn.LayerNorm(d)
         self.up = DecomposedUp(d, kernel, stride, cfg.tz_kernel_z)
 
-    def local(self, x: SparseTensor) -> Tensor:
+    def local_packings(self, x: SparseTensor) -> LocalPackings:
+        return LocalPackings.of(x, self.frustum_theta_bins, self.fwd_mamba.cfg.d_conv)
+
+    def local(self, x: SparseTensor, seqs: LocalPackings) -> Tensor:
         """Bidirectional Mamba inside each frustum -> V_local features (N, C)."""
-        cu = frustum_cu_seqlens(x, self.frustum_theta_bins)
         h = self.norm_local(x.features)  # (N, C)
-        fwd, _ = self.fwd_mamba(h, cu)
-        h_rev, cu_rev = reverse_packed(h, cu)
-        bwd, _ = self.bwd_mamba(h_rev, cu_rev)
+        fwd, _ = self.fwd_mamba(h, seqs.fwd)
+        bwd, _ = self.bwd_mamba(h.flip(0), seqs.bwd)  # flipping the pack reverses every frustum
         return x.features + fwd + bwd.flip(0)
 
     def forward(
-        self, x: SparseTensor, layout: StreamLayout, state: MambaState
-    ) -> tuple[SparseTensor, MambaState]:
-        """x: sectors (rows sorted by (batch, theta, r, z)); state: global Mamba state, one row per stream."""
-        v_local = self.local(x)  # (N, C)
-        coarse, ctx = self.down(x.replace(v_local))
-        stream_of_row = layout.stream_index.index_select(0, coarse.coords[:, BATCH])  # (M,)
-        cu = cu_seqlens_from_keys(stream_of_row, layout.num_streams)
-        g, new_state = self.global_mamba(coarse.features, cu, state)  # (M, C)
+        self,
+        x: SparseTensor,
+        layout: StreamLayout,
+        state: MambaState,
+        local_seqs: LocalPackings | None = None,
+        coarsening: Coarsening | None = None,
+    ) -> tuple[SparseTensor, MambaState, Coarsening]:
+        """x: sectors (rows sorted by (batch, theta, r, z)); state: global Mamba state, one row per stream.
+
+        `local_seqs` and `coarsening`, when given, must have been built for x's sites (and this block's kernel
+        and stride, and `layout`): the backbone shares them between blocks. Returns the block's Coarsening.
+        """
+        v_local = self.local(x, self.local_packings(x) if local_seqs is None else local_seqs)  # (N, C)
+        coarse, ctx = self.down(x.replace(v_local), None if coarsening is None else coarsening.down)
+        if coarsening is None:
+            stream_of_row = layout.stream_index.index_select(0, coarse.coords[:, BATCH])  # (M,)
+            cu = cu_seqlens_from_keys(stream_of_row, layout.num_streams)
+            coarsening = Coarsening(ctx, self.global_mamba.packing(cu, coarse.num_sites))
+        g, new_state = self.global_mamba(coarse.features, coarsening.global_seqs, state)  # (M, C)
         up = self.up(coarse.replace(self.norm_global(g)), ctx)
-        return x.replace(up.features + v_local), new_state
+        return x.replace(up.features + v_local), new_state, coarsening
 
 
 class PHiMBackbone(nn.Module):
@@ -123,8 +159,12 @@ class PHiMBackbone(nn.Module):
     def forward(
         self, x: SparseTensor, layout: StreamLayout, states: list[MambaState]
     ) -> tuple[SparseTensor, list[MambaState]]:
+        """Blocks with the same kernel and stride share their rule books and packings (same sites)."""
+        local_seqs = LocalPackings.of(x, self.cfg.frustum_theta_bins, self.cfg.mamba.d_conv)
+        coarsenings: dict[tuple[int, int], Coarsening] = {}
         new_states = []
         for block, state in zip(self.blocks, states, strict=True):
-            x, s = block(x, layout, state)
+            key = (block.down.stride, block.down.conv_rz.kernel[0])
+            x, s, coarsenings[key] = block(x, layout, state, local_seqs, coarsenings.get(key))
             new_states.append(s)
         return x, new_states

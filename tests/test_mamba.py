@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from test_scan import CPU_IMPLS
 
 from model.config import MambaConfig, ScanImpl
-from model.mamba import Mamba, MambaState, conv_gather_indices
+from model.mamba import Mamba, MambaState, Packing, conv_gather_indices
 from model.scan import selective_scan_ref
 
 CFG = MambaConfig(d_state=4, d_conv=4, expand=2, chunk_size=8)
@@ -175,3 +175,16 @@ def test_state_with_wrong_number_of_sequences_raises():
             _cu([4]),
             MambaState.zeros(2, 16, 4, 4, "cpu", torch.float64),
         )
+
+
+def test_a_shared_packing_gives_the_same_outputs_and_must_fit():
+    m = _layer()
+    x, cu = torch.randn(7, 8, dtype=torch.float64), _cu([3, 0, 4])
+    packing = m.packing(cu, 7)
+    y, state = m(x, packing)
+    y_ref, state_ref = m(x, cu)
+    assert torch.equal(y, y_ref) and torch.equal(state.conv, state_ref.conv)
+    with pytest.raises(ValueError, match="packing for 7 tokens"):
+        m(x[:6], packing)
+    with pytest.raises(ValueError, match="d_conv"):
+        m(x, Packing.of(cu, 7, m.cfg.d_conv + 1))

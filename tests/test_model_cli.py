@@ -37,3 +37,18 @@ def test_bench_model_names_a_missing_checkpoint() -> None:
     result = CliRunner().invoke(app, ["bench", "model", "--checkpoint", "no/such.pt", "--turns", "1"])
     assert result.exit_code != 0
     assert "no/such.pt" in str(result.exception)
+
+
+def test_bench_ops_credits_every_op_to_a_model_function() -> None:
+    args = ["bench", "ops", "--config", "tiny", "--checkpoint", "default", "--json"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output.strip().splitlines()[-1])
+    rows = {r["where"]: r for r in report["rows"]}
+    assert report["device"] == "cpu" and report["cuda_kernels"] is None
+    assert sum(r["ops"] for r in rows.values()) == report["ops"] > report["ops_outside_scan"] > 0
+    assert sum(r["syncs"] for r in rows.values()) == report["syncs"] > 0
+    # the Mamba layers, the rule books (their `nonzero` waits for a GPU) and the chunked scan are all seen
+    assert rows["model/mamba.py: forward"]["ops"] > 0
+    assert rows["model/sparse_conv.py: build_strided_rulebook"]["syncs"] > 0
+    assert any(w.startswith("model/scan.py") for w in rows)

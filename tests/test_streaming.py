@@ -13,6 +13,7 @@ from model.boxes import Detections
 from model.config import ScanImpl, tiny
 from model.detector import PHiM
 from model.mamba import Mamba
+from model.phim_block import StreamLayout
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 from model.synthetic import synthetic_turn
@@ -152,3 +153,32 @@ def test_set_scan_changes_how_not_what(model: PHiM):
     assert len(chunked[-1].detections) > 0
     for a, b in zip(chunked, reference, strict=True):
         assert_same_detections(a.detections, b.detections)
+
+
+def test_blocks_with_the_same_kernel_and_stride_share_their_rule_books():
+    """The backbone builds the frustum packings once and the rule books once per (kernel, stride); a block
+    handed another block's geometry computes exactly what it computes with its own."""
+    cfg = tiny()
+    backbone = dataclasses.replace(cfg.backbone, down_strides=(1, 2, 1, 2), down_kernels=(3, 3, 3, 3))
+    cfg = dataclasses.replace(cfg, backbone=backbone)
+    torch.manual_seed(2)
+    model = PHiM(cfg).eval()
+    sectors = split_turn(kitti_scan(0), cfg.sectors_per_turn)[:2]
+    layout = StreamLayout.one_per_item(2, model.device)
+    with torch.inference_mode():
+        x, _ = model.voxelizer(sectors)
+        states = model.init_states(2)
+        blocks = model.backbone.blocks
+        local = blocks[0].local_packings(x)
+        h0, _, c0 = blocks[0](x, layout, states[0], local)
+        h1, _, c1 = blocks[1](h0, layout, states[1], local)
+        h2, s2, c2 = blocks[2](h1, layout, states[2], local, c0)  # stride 1 again: block 0's geometry
+        own, s_own, c_own = blocks[2](h1, layout, states[2])  # builds its own
+        h3, _, c3 = blocks[3](h2, layout, states[3], local, c1)
+        whole, _ = model.backbone(x, layout, states)
+    assert c2 is c0 and c3 is c1 and c_own is not c0
+    assert torch.equal(h2.features, own.features) and torch.equal(s2.ssm, s_own.ssm)
+    assert torch.equal(c_own.down.theta_z.in_idx, c0.down.theta_z.in_idx)
+    assert torch.equal(c_own.global_seqs.older, c0.global_seqs.older)
+    assert not torch.equal(c1.down.rz.out_coords, c0.down.rz.out_coords)  # stride 2: other sites
+    assert torch.equal(whole.features, h3.features)
