@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # On a GPU machine whose python3 already holds a CUDA build of torch (plus numpy, typer, rich, pytest):
-# the CUDA parity tests, then the model benchmarks for the GPU rows of docs/benchmarks.md.
+# the CUDA parity tests, then the model benchmarks for the GPU rows of docs/benchmarks.md and the op counts.
 # Needs the KITTI scans 000000/000001 at ../shared/data/kitti_object/velodyne, as the CPU tests do.
 # Usage: bash scripts/gpu_session.sh [OUTDIR]   (JSON results and logs land in OUTDIR, default runs/gpu)
 set -euo pipefail
@@ -19,8 +19,11 @@ for run in "paper 1 auto" "paper 8 auto" "paper 1 chunked" "tiny 1 auto" "tiny 8
     phim bench model --config "$1" --batch "$2" --scan "$3" --device cuda --turns 20 --json \
         >"$out/bench_$1_b$2_$3.json"
 done
+for config in paper tiny; do  # ops, CUDA kernels and host syncs of one step, by model function
+    phim bench ops --config "$config" --device cuda --rows 30 >"$out/ops_$config.md"
+done
 echo
-cat "$out/gpu.txt"
+cat "$out/gpu.txt" "$out/ops_paper.md"
 "$py" - "$out" <<'PY'
 import json, pathlib, sys
 out = pathlib.Path(sys.argv[1])
