@@ -36,14 +36,15 @@ def make_bn(channels: int) -> nn.BatchNorm1d:
     return nn.BatchNorm1d(channels, eps=BN_EPS, momentum=BN_MOMENTUM)
 
 
-def bn_relu(bn: nn.BatchNorm1d, x: SparseTensor) -> SparseTensor:
-    """BatchNorm1d + ReLU over the features (N, C) of x; safe for N < 2 (see module docstring)."""
+def bn_relu(bn: nn.BatchNorm1d | nn.Identity, x: SparseTensor) -> SparseTensor:
+    """BatchNorm1d + ReLU over the features (N, C) of x; safe for N < 2 (see module docstring). `bn` is an
+    Identity once folded into the conv before it (`model.fold_bn`)."""
     f: Tensor = x.features
-    if bn.training and f.shape[0] < 2:
+    if isinstance(bn, nn.BatchNorm1d) and bn.training and f.shape[0] < 2:
         f = F.batch_norm(f, bn.running_mean, bn.running_var, bn.weight, bn.bias, False, 0.0, bn.eps)
     else:
         f = bn(f)
-    return x.replace(F.relu(f, inplace=True))  # f is a fresh BatchNorm output
+    return x.replace(F.relu(f, inplace=True))  # f is fresh: a BatchNorm's output, or a folded conv's
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from model.boxes import Detections
 from model.detector import PHiM, SectorFeatures
+from model.fold_bn import fold_batchnorms
 from model.mamba import MambaState
 from model.phim_block import StreamLayout
 from model.voxelize import PointsError, validate_points
@@ -43,14 +44,17 @@ class SectorResult:
 
 
 class StreamingDetector:
-    def __init__(self, model: PHiM):
-        self.model = model.eval()
+    def __init__(self, model: PHiM, fold_bn: bool = True):
+        """Runs `model` in eval mode; with `fold_bn` an inference copy of it with every BatchNorm folded into
+        the conv before it (`model.fold_bn`: fewer kernels, the same outputs up to float rounding)."""
+        self.model = fold_batchnorms(model) if fold_bn else model.eval()
         self.cfg = model.cfg
         log.info(
-            "streaming detector: config=%s device=%s scan=%s",
+            "streaming detector: config=%s device=%s scan=%s batchnorms folded=%s",
             self.cfg.name,
             model.device,
             self.cfg.backbone.mamba.scan.value,
+            fold_bn,
         )
 
     @property

@@ -12,6 +12,7 @@ from conftest import kitti_scan
 from model.boxes import Detections
 from model.config import ScanImpl, tiny
 from model.detector import PHiM
+from model.fold_bn import count_batchnorms, fold_batchnorms
 from model.mamba import Mamba
 from model.phim_block import StreamLayout
 from model.sectors import split_turn
@@ -182,3 +183,21 @@ def test_blocks_with_the_same_kernel_and_stride_share_their_rule_books():
     assert torch.equal(c_own.global_seqs.older, c0.global_seqs.older)
     assert not torch.equal(c1.down.rz.out_coords, c0.down.rz.out_coords)  # stride 2: other sites
     assert torch.equal(whole.features, h3.features)
+
+
+def test_folded_batchnorms_give_the_unfolded_detections(model: PHiM):
+    """StreamingDetector runs a copy with every BatchNorm folded into its conv; the model as it is is the
+    twin."""
+    folded = fold_batchnorms(model)
+    vfe_norms = len(model.voxelizer.layers)  # the VFE folds its BatchNorm itself, in eval mode
+    assert count_batchnorms(folded) == vfe_norms < count_batchnorms(model)
+    assert all(not m.training for m in folded.modules())
+    sectors = split_turn(kitti_scan(1), model.cfg.sectors_per_turn)
+    plain, plain_state = stream(StreamingDetector(model, fold_bn=False), sectors)
+    fast, fast_state = stream(StreamingDetector(model), sectors)
+    assert len(plain[-1].detections) > 0
+    for a, b in zip(plain, fast, strict=True):
+        assert_same_detections(a.detections, b.detections)
+    for a, b in zip(plain_state.buffer, fast_state.buffer, strict=True):
+        torch.testing.assert_close(a.features, b.features, rtol=1e-4, atol=1e-5)
+    assert count_batchnorms(model) > vfe_norms  # the model handed in is left as it was
