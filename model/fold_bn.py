@@ -5,9 +5,11 @@ In eval mode a BatchNorm after a conv is an affine map per output channel, so it
     s = gamma / sqrt(running_var + eps)            # (C_out,)
     W' = W * s (per output channel);  b' = (b - running_mean) * s + beta     (b = 0 for a conv without bias)
 
-One kernel and one pass over the activations fewer per BatchNorm: 30 sparse ones (decomposed down/up-sampling)
-and the dense ones of the BEV backbone and the head. The BatchNorm is replaced by `nn.Identity`; the
-unfolded model is the plain twin (a test holds the two equal). The VFE folds its own BatchNorm in eval mode
+That saves the BatchNorm's pass over the activations where the conv adds its bias itself (the dense convs
+on the CPU; a sparse conv, and a conv on a GPU, add the bias in a pass of their own, a cheaper one than the
+BatchNorm's): the sparse convs of the decomposed down/up-sampling (30 in the paper config), the BEV
+backbone's convs and transposed convs, the head's. The BatchNorm is replaced by `nn.Identity`; the unfolded
+model is the plain twin (a test holds the two equal). The VFE folds its own BatchNorm in eval mode
 already (`voxelize._VFELayer`). The copy is for inference only: training it would not train BatchNorms.
 """
 

@@ -97,6 +97,7 @@ class PHiMBlock(nn.Module):
     def __init__(self, cfg: BackboneConfig, kernel: int, stride: int):
         super().__init__()
         d = cfg.d_model
+        self.kernel, self.stride = kernel, stride  # of the decomposed down/up-sampling
         self.frustum_theta_bins = cfg.frustum_theta_bins
         self.norm_local = nn.LayerNorm(d)
         self.fwd_mamba = Mamba(d, cfg.mamba)
@@ -164,7 +165,7 @@ class PHiMBackbone(nn.Module):
         coarsenings: dict[tuple[int, int], Coarsening] = {}
         new_states = []
         for block, state in zip(self.blocks, states, strict=True):
-            key = (block.down.stride, block.down.conv_rz.kernel[0])
+            key = (block.kernel, block.stride)
             x, s, coarsenings[key] = block(x, layout, state, local_seqs, coarsenings.get(key))
             new_states.append(s)
         return x, new_states

@@ -46,7 +46,7 @@ class SectorResult:
 class StreamingDetector:
     def __init__(self, model: PHiM, fold_bn: bool = True):
         """Runs `model` in eval mode; with `fold_bn` an inference copy of it with every BatchNorm folded into
-        the conv before it (`model.fold_bn`: fewer kernels, the same outputs up to float rounding)."""
+        the conv before it (`model.fold_bn`: the same outputs up to float rounding, a little faster)."""
         self.model = fold_batchnorms(model) if fold_bn else model.eval()
         self.cfg = model.cfg
         log.info(
