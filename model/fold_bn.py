@@ -77,7 +77,3 @@ def fold_batchnorms(model: PHiM) -> PHiM:
                     setattr(module, conv_name, conv)
                     setattr(module, bn_name, nn.Identity())
     return folded.eval()  # the new modules too
-
-
-def count_batchnorms(model: nn.Module) -> int:
-    return sum(isinstance(m, nn.modules.batchnorm._BatchNorm) for m in model.modules())

@@ -12,7 +12,7 @@ from conftest import kitti_scan
 from model.boxes import Detections
 from model.config import ScanImpl, tiny
 from model.detector import PHiM
-from model.fold_bn import count_batchnorms, fold_batchnorms
+from model.fold_bn import fold_batchnorms
 from model.mamba import Mamba
 from model.phim_block import StreamLayout
 from model.sectors import split_turn
@@ -183,6 +183,10 @@ def test_blocks_with_the_same_kernel_and_stride_share_their_rule_books():
     assert torch.equal(c_own.global_seqs.older, c0.global_seqs.older)
     assert not torch.equal(c1.down.rz.out_coords, c0.down.rz.out_coords)  # stride 2: other sites
     assert torch.equal(whole.features, h3.features)
+
+
+def count_batchnorms(model: torch.nn.Module) -> int:
+    return sum(isinstance(m, torch.nn.modules.batchnorm._BatchNorm) for m in model.modules())
 
 
 def test_folded_batchnorms_give_the_unfolded_detections(model: PHiM):
