@@ -1,7 +1,7 @@
 """The one client interface (HTTP and zenoh alike) and its typed errors.
 
-A client sends one sector of a stream (`server.protocol.SectorMessage`) and returns the server's
-`server.protocol.DetectionsReply` (boxes (K, 7) x, y, z, l, w, h, yaw; scores (K,); labels (K,); class names),
+A client sends one sector of a stream (`contract.SectorMessage`) and returns the server's
+`contract.DetectionsReply` (boxes (K, 7) x, y, z, l, w, h, yaw; scores (K,); labels (K,); class names),
 or raises:
   - `ServerError`: the server answered with an error (its `code`, `message`, `field`, `retry_after_s`);
   - `TransportError`: no answer came (connection failed, the request timed out: `RequestTimeout`, or the
@@ -18,9 +18,7 @@ from typing import Any, Self
 
 import numpy as np
 
-from server.protocol import DetectionsReply, ErrorCode, ErrorReply, SectorMessage, ServiceError
-
-DEFAULT_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity")
+from contract import REQUIRED_FIELDS, DetectionsReply, ErrorCode, ErrorReply, SectorMessage, ServiceError
 
 
 class ClientError(Exception):
@@ -73,7 +71,7 @@ def sector_message(
     seq: int,
     sector_index: int,
     points: np.ndarray,
-    fields: Sequence[str] = DEFAULT_FIELDS,
+    fields: Sequence[str] = REQUIRED_FIELDS,
     timestamp_ns: int | None = None,
     reset: bool = False,
 ) -> SectorMessage:
@@ -132,7 +130,7 @@ class DetectorClient(abc.ABC):
         seq: int,
         sector_index: int,
         points: np.ndarray,
-        fields: Sequence[str] = DEFAULT_FIELDS,
+        fields: Sequence[str] = REQUIRED_FIELDS,
         timestamp_ns: int | None = None,
         reset: bool = False,
     ) -> DetectionsReply:

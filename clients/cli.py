@@ -1,4 +1,4 @@
-"""`phim loadtest` and `phim replay` (typer commands, registered on the `phim` app by server/cli.py)."""
+"""`phim loadtest` and `phim replay` (typer commands, loaded by the `phim` command, phim/cli.py)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,7 @@ import typer
 
 from clients.connect import ConnectConfig, Transport
 from clients.loadtest.config import Mode
-
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = REPO.parent / "shared" / "data" / "kitti_object" / "velodyne"
+from model.data.samples import KITTI_VELODYNE
 
 TransportOpt = Annotated[Transport, typer.Option(help="http or zenoh")]
 UrlOpt = Annotated[str, typer.Option(help="server HTTP address (over zenoh: model info, ending streams)")]
@@ -59,7 +57,7 @@ def _data(data: Path | None, synthetic: bool) -> Path | None:
         return None
     if data is not None:
         return data
-    return DEFAULT_DATA if DEFAULT_DATA.is_dir() else None
+    return KITTI_VELODYNE if KITTI_VELODYNE.is_dir() else None
 
 
 def loadtest(
@@ -78,7 +76,7 @@ def loadtest(
     turns_per_s: Annotated[float, typer.Option(min=0.01, help="sensor turns per second per vehicle")] = 10.0,
     sectors_per_turn: Annotated[int | None, typer.Option(help="default: the served model's")] = None,
     data: Annotated[
-        Path | None, typer.Option(help=f"folder of scans [default: {DEFAULT_DATA} if present]")
+        Path | None, typer.Option(help=f"folder of scans [default: {KITTI_VELODYNE} if present]")
     ] = None,
     synthetic: Annotated[bool, typer.Option(help="synthetic turns instead of recorded scans")] = False,
     every: Annotated[int, typer.Option(min=1, help="keep every n-th point")] = 1,
@@ -162,7 +160,7 @@ def replay(
 def _or_exit(fn, *args):
     """Run; a client error or missing data ends the command with its message and exit code 2."""
     from clients.base import ClientError
-    from model.runtime import tune_malloc
+    from phim.process import tune_malloc
 
     tune_malloc()  # sector-sized buffers stay on the heap: encoding a 30k-point sector 0.5 -> 0.08 ms
 
@@ -171,8 +169,3 @@ def _or_exit(fn, *args):
     except (ClientError, FileNotFoundError, ValueError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(code=2) from None
-
-
-def register(app: typer.Typer) -> None:
-    app.command("loadtest")(loadtest)
-    app.command("replay")(replay)

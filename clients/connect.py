@@ -6,6 +6,8 @@ import enum
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from contract import DEFAULT_KEY_PREFIX
+
 if TYPE_CHECKING:
     from clients.base import DetectorClient
 
@@ -22,7 +24,7 @@ class ConnectConfig:
     zenoh_connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     zenoh_mode: str = "client"
     zenoh_config_file: str | None = None
-    key_prefix: str = "phim/v1"
+    key_prefix: str = DEFAULT_KEY_PREFIX
     timeout_s: float = 10.0
     use_http_control: bool = True  # over zenoh, reach model info / end stream at `url`
 

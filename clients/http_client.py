@@ -20,7 +20,8 @@ import httpx
 
 from clients.base import DetectorClient, RequestTimeout, ServerError, TransportError, answer
 from clients.http_conn import ConnectionPool, Response
-from server.protocol import (
+from contract import (
+    MSGPACK,
     DetectionsReply,
     ErrorCode,
     SectorMessage,
@@ -30,7 +31,6 @@ from server.protocol import (
     encode_sector,
 )
 
-MSGPACK = "application/msgpack"
 SECTOR_HEADERS = {"Content-Type": MSGPACK, "Accept": MSGPACK}
 
 

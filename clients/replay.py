@@ -19,11 +19,11 @@ import numpy as np
 from clients.base import DetectorClient, ServerError
 from clients.connect import ConnectConfig, make_client
 from clients.predictions import PredictionRecord, PredictionWriter
-from clients.sectorizer import MODEL_FIELDS, split_scan
+from clients.sectorizer import split_scan
+from contract import REQUIRED_FIELDS, SectorMessage
 from model.data.labels import labels_for
 from model.data.pictures import BoxSet, draw_bev
 from model.data.readers import Scan, find_scans, read_scan
-from server.protocol import SectorMessage
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +104,7 @@ def _run(
                 sector.index,
                 _stamp(scan, seq, period),
                 sector.points[:: cfg.every],
-                MODEL_FIELDS,
+                REQUIRED_FIELDS,
                 reset=seq == 0,
             )
             last = _send(client, msg, scan.name, scan_index, position, position == len(sectors) - 1)

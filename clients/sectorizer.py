@@ -20,9 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from contract import REQUIRED_FIELDS
 from model.data.readers import Spin
-
-MODEL_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity")
 
 
 @dataclass(frozen=True)
@@ -32,7 +31,7 @@ class Sector:
     points: np.ndarray  # (N, C) float32 in `output_fields` order
 
 
-def column_picker(fields: Sequence[str], output_fields: Sequence[str] = MODEL_FIELDS) -> list[int]:
+def column_picker(fields: Sequence[str], output_fields: Sequence[str] = REQUIRED_FIELDS) -> list[int]:
     """Column index of every output field in the input; ValueError naming a missing or duplicate field."""
     names = [f.lower() for f in fields]
     if len(set(names)) != len(names):
@@ -68,7 +67,7 @@ def split_scan(
     fields: Sequence[str],
     sectors: int = 4,
     spin: Spin = Spin.CCW,
-    output_fields: Sequence[str] = MODEL_FIELDS,
+    output_fields: Sequence[str] = REQUIRED_FIELDS,
 ) -> list[Sector]:
     """A whole turn (N, C) -> `sectors` Sectors in sweep order, first the one holding the first point.
 
@@ -99,7 +98,7 @@ class StreamSectorizer:
         fields: Sequence[str],
         sectors: int = 4,
         spin: Spin = Spin.CCW,
-        output_fields: Sequence[str] = MODEL_FIELDS,
+        output_fields: Sequence[str] = REQUIRED_FIELDS,
         min_range: float = 1.0,
     ):
         if sectors < 1:

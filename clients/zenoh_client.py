@@ -23,15 +23,17 @@ import zenoh
 
 from clients.base import ClientError, DetectorClient, RequestTimeout, TransportError, answer
 from clients.http_client import HttpClient
-from server.protocol import (
+from clients.zenoh_session import MSGPACK_ENCODING, open_session
+from contract import (
+    DEFAULT_KEY_PREFIX,
     DetectionsReply,
     ErrorReply,
+    KeySpace,
     SectorMessage,
     ServiceError,
     decode_response,
     encode_sector,
 )
-from server.zenoh_transport import MSGPACK, KeySpace, ZenohConfig, open_session
 
 BLOCK = zenoh.CongestionControl.BLOCK
 Outcome = DetectionsReply | ErrorReply | ClientError
@@ -45,20 +47,10 @@ class NotSupported(ClientError):
 class ZenohClientConfig:
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     mode: str = "client"  # "client" (needs a reachable worker or router at open) or "peer"
-    key_prefix: str = "phim/v1"
+    key_prefix: str = DEFAULT_KEY_PREFIX
     timeout_s: float = 10.0  # per get
     config_file: str | None = None  # a zenoh JSON5 file (TLS, ...); the fields above override it
     http_url: str | None = None  # the same server's HTTP address, for model_info / end_stream
-
-    def session_config(self) -> ZenohConfig:
-        return ZenohConfig(
-            mode=self.mode,
-            listen=(),
-            connect=self.connect,
-            multicast_scouting=False,
-            config_file=self.config_file,
-            key_prefix=self.key_prefix,
-        )
 
 
 class ZenohClient(DetectorClient):
@@ -74,7 +66,9 @@ class ZenohClient(DetectorClient):
         self._reset_next: set[str] = set()
         self._lock = threading.Lock()
         try:
-            self._session: zenoh.Session | None = open_session(cfg.session_config())
+            self._session: zenoh.Session | None = open_session(
+                cfg.connect, cfg.mode, config_file=cfg.config_file
+            )
         except zenoh.ZError as e:
             raise TransportError(
                 f"zenoh: cannot open a {cfg.mode} session to {list(cfg.connect)}: {e}"
@@ -110,7 +104,7 @@ class ZenohClient(DetectorClient):
         return encode_sector(msg)
 
     def _get_options(self) -> dict[str, Any]:
-        return {"encoding": MSGPACK, "congestion_control": BLOCK, "timeout": self.config.timeout_s}
+        return {"encoding": MSGPACK_ENCODING, "congestion_control": BLOCK, "timeout": self.config.timeout_s}
 
     # ------------------------------------------------------------------------------------------ control
 
@@ -154,7 +148,7 @@ def reply_outcome(reply: zenoh.Reply) -> Outcome:
     else:
         err = reply.err
         assert err is not None
-        data, is_msgpack = err.payload.to_bytes(), str(err.encoding).startswith(str(MSGPACK))
+        data, is_msgpack = err.payload.to_bytes(), str(err.encoding).startswith(str(MSGPACK_ENCODING))
     if not is_msgpack:  # zenoh's own error reply: b"Timeout" when the get's timeout passed
         if data.strip().lower() == b"timeout":
             return RequestTimeout("zenoh: no reply before the get's timeout")

@@ -14,15 +14,15 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from model.bev_backbone import BEVBackbone
-from model.boxes import Detections
 from model.config import PHiMConfig, ScanImpl
-from model.head import CenterHead, HeadOutput, decode
-from model.mamba import Mamba, MambaState
-from model.phim_block import PHiMBackbone, StreamLayout
-from model.polar_bev import PolarToBEV
-from model.sparse_tensor import BATCH, SparseTensor
-from model.voxelize import PolarVoxelizer, VoxelStats
+from model.geometry.boxes import Detections
+from model.geometry.sparse_tensor import BATCH, SparseTensor
+from model.layers.bev_backbone import BEVBackbone
+from model.layers.head import CenterHead, HeadOutput, decode
+from model.layers.mamba import Mamba, MambaState
+from model.layers.phim_block import PHiMBackbone, StreamLayout
+from model.layers.polar_bev import PolarToBEV
+from model.layers.voxelize import PolarVoxelizer, VoxelStats
 
 
 @dataclass(frozen=True)

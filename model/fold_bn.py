@@ -22,10 +22,10 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-from model.bev_backbone import BasicBlock
-from model.decomposed import DecomposedDown, DecomposedUp
 from model.detector import PHiM
-from model.sparse_conv import SparseConv2d, SparseInverseConv2d
+from model.layers.bev_backbone import BasicBlock
+from model.layers.decomposed import DecomposedDown, DecomposedUp
+from model.layers.sparse_conv import SparseConv2d, SparseInverseConv2d
 
 # (conv, its BatchNorm) attribute pairs of the modules that are not an nn.Sequential
 PAIRS: dict[type[nn.Module], tuple[tuple[str, str], ...]] = {

@@ -14,12 +14,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from model.boxes import Detections
 from model.detector import PHiM, SectorFeatures
 from model.fold_bn import fold_batchnorms
-from model.mamba import MambaState
-from model.phim_block import StreamLayout
-from model.voxelize import PointsError, validate_points
+from model.geometry.boxes import Detections
+from model.layers.mamba import MambaState
+from model.layers.phim_block import StreamLayout
+from model.layers.voxelize import PointsError, validate_points
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | 
 "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" | tee -a "$out/gpu.txt"
 "$py" -m pytest -q -W error -p no:cacheprovider tests/test_cuda.py 2>&1 | tee "$out/test_cuda.log" ||
     echo "CUDA TESTS FAILED (benchmarks follow anyway)"
-phim() { "$py" -m model.cli "$@"; }
+phim() { "$py" -m phim "$@"; }
 phim model info --config paper --json >"$out/info_paper.json"
 for run in "paper 1 auto" "paper 8 auto" "paper 1 chunked" "tiny 1 auto" "tiny 8 auto"; do
     set -- $run

@@ -16,14 +16,10 @@ from typing import Any, Protocol
 from fastapi import FastAPI, Request, Response
 from fastapi.responses import JSONResponse
 
-from model.checkpoint import load_checkpoint
-from model.config import get_config
-from model.runtime import pick_device
-from model.stream import StreamingDetector
-from server.default_model import init_model, load_default_model
-from server.metrics import Metrics
-from server.protocol import (
+from contract import (
     HTTP_STATUS,
+    MSGPACK,
+    MSGPACK_TYPES,
     ErrorCode,
     ErrorReply,
     Limits,
@@ -35,14 +31,17 @@ from server.protocol import (
     error_to_json,
     reply_to_json,
 )
+from model.checkpoint import load_checkpoint
+from model.config import get_config
+from model.device import pick_device
+from model.stream import StreamingDetector
+from server.default_model import init_model, load_default_model
+from server.metrics import Metrics
 from server.settings import Settings
 from server.warmup import package_version
 from server.worker import Worker
 
 log = logging.getLogger(__name__)
-
-MSGPACK = "application/msgpack"
-MSGPACK_TYPES = (MSGPACK, "application/x-msgpack", "application/vnd.msgpack")
 
 
 class Closeable(Protocol):

@@ -1,4 +1,4 @@
-"""The `phim` command. Subcommands grow with each part of the project."""
+"""`phim serve`."""
 
 from __future__ import annotations
 
@@ -9,26 +9,9 @@ from typing import Annotated
 
 import typer
 
-from clients.cli import register as register_clients
-from model.cli import bench_app, model_app
-from model.data.sim.cli import bench_sim_cmd
-from model.data.sim.cli import register as register_sim
-from model.train.cli import register as register_training
-from server.bench import bench_server_cmd
-
-app = typer.Typer(help="PHiM streaming LiDAR detector.", no_args_is_help=True, add_completion=False)
-app.add_typer(model_app, name="model")
-bench_app.command("server")(bench_server_cmd)
-bench_app.command("sim")(bench_sim_cmd)
-app.add_typer(bench_app, name="bench")
-register_clients(app)  # phim loadtest, phim replay
-register_sim(app)  # phim sim
-register_training(app)  # phim train, phim eval
-
 ZENOH = "zenoh"
 
 
-@app.command("serve")
 def serve(
     host: Annotated[str | None, typer.Option(help="HTTP bind address [PHIM_HOST; 127.0.0.1]")] = None,
     port: Annotated[int | None, typer.Option(help="HTTP port [PHIM_PORT; 8080]")] = None,
@@ -100,7 +83,7 @@ def run_server(flags: dict[str, object]) -> None:
     import uvicorn
     from pydantic import ValidationError
 
-    from model.runtime import tune_malloc
+    from phim.process import tune_malloc
     from server.app import create_app
     from server.settings import Settings
 
@@ -143,7 +126,3 @@ def run_server(flags: dict[str, object]) -> None:
 
 def _after_shutdown(sig: int, frame: object) -> None:
     logging.getLogger("phim.serve").info("stopped by signal %d after a graceful shutdown", sig)
-
-
-if __name__ == "__main__":
-    app()

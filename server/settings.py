@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from server.protocol import Limits
+from contract import Limits
 from server.worker import WorkerConfig
 
 if TYPE_CHECKING:

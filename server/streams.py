@@ -17,8 +17,8 @@ from typing import Any
 
 import torch
 
+from contract import DetectionsReply, ErrorCode, SectorMessage, ServiceError
 from model.stream import StreamState
-from server.protocol import DetectionsReply, ErrorCode, SectorMessage, ServiceError
 
 
 @dataclass

@@ -8,10 +8,12 @@ import time
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-from model.config import POINT_FIELDS
+import torch
+
+from contract import POINT_FIELDS
+from model.data.synthetic import synthetic_turn
 from model.sectors import split_turn
 from model.stream import StreamingDetector
-from model.synthetic import synthetic_turn
 
 log = logging.getLogger(__name__)
 
@@ -21,7 +23,7 @@ def warm_up(det: StreamingDetector, sectors: int) -> float:
     of two streams; returns the mean seconds of one forward (0.1 if no forward ran)."""
     if sectors <= 0:
         return 0.1
-    turn = split_turn(synthetic_turn(seed=0), det.cfg.sectors_per_turn)  # list of (N_k, 4)
+    turn = split_turn(torch.from_numpy(synthetic_turn(seed=0)), det.cfg.sectors_per_turn)  # list of (N_k, 4)
     state = det.init_state()
     t0 = time.monotonic()
     for i in range(sectors):

@@ -22,10 +22,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from model.config import POINT_FIELDS
+from contract import POINT_FIELDS, DetectionsReply, ErrorCode, SectorMessage, ServiceError, Timings
 from model.stream import SectorResult, StreamingDetector
 from server.metrics import OK, Metrics
-from server.protocol import DetectionsReply, ErrorCode, SectorMessage, ServiceError, Timings
 from server.streams import Pending, StreamEntry, StreamTable
 from server.warmup import model_info, warm_up
 

@@ -9,7 +9,7 @@ Threads, so that no zenoh callback ever blocks and no zenoh call is made inside 
   - one replier thread owns every outgoing zenoh call: `reply`/`reply_err` + `drop` for queries, `put` for
     pub/sub results. Every sector gets exactly one answer, also on decode errors and on `close`.
 
-Key expressions (prefix "phim/v1" by default): see `KeySpace` and docs/protocol.md ("Zenoh").
+Key expressions (prefix "phim/v1" by default): see `contract.KeySpace` and docs/protocol.md ("Zenoh").
 """
 
 from __future__ import annotations
@@ -26,11 +26,14 @@ from typing import TypeVar
 
 import zenoh
 
-from server.protocol import (
+from contract import (
+    DEFAULT_KEY_PREFIX,
+    MSGPACK,
     STREAM_ID_RE,
     DetectionsReply,
     ErrorCode,
     ErrorReply,
+    KeySpace,
     Limits,
     SectorMessage,
     ServiceError,
@@ -41,7 +44,7 @@ from server.protocol import (
 
 log = logging.getLogger(__name__)
 
-MSGPACK = zenoh.Encoding("application/msgpack")
+MSGPACK_ENCODING = zenoh.Encoding(MSGPACK)
 CHANNEL_CAPACITY = 256  # queries / samples zenoh may hold for a receiver thread before it pushes back
 JOIN_TIMEOUT_S = 10.0
 
@@ -57,7 +60,7 @@ class ZenohConfig:
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
     config_file: str | None = None  # a zenoh JSON5 config file; the fields above override it
-    key_prefix: str = "phim/v1"
+    key_prefix: str = DEFAULT_KEY_PREFIX
 
 
 def build_config(cfg: ZenohConfig) -> zenoh.Config:
@@ -86,41 +89,6 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
         cfg.config_file,
     )
     return session
-
-
-@dataclass(frozen=True)
-class KeySpace:
-    """The key expressions under one prefix."""
-
-    prefix: str = "phim/v1"
-
-    @property
-    def sector_queryable(self) -> str:  # request/reply: get with a sector as payload
-        return f"{self.prefix}/streams/*/sector"
-
-    @property
-    def sector_subscriber(self) -> str:  # pub/sub: put a sector
-        return f"{self.prefix}/streams/*/sectors"
-
-    def sector(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/sector"
-
-    def sectors(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/sectors"
-
-    def detections(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/detections"
-
-    def errors(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/errors"
-
-    def worker(self, worker_id: str) -> str:
-        return f"{self.prefix}/workers/{worker_id}"
-
-    def stream_id_of(self, key: str) -> str:
-        """The stream-ID chunk of `{prefix}/streams/{id}/...` ('' if the key has another shape)."""
-        head = f"{self.prefix}/streams/"
-        return key[len(head) :].split("/", 1)[0] if key.startswith(head) else ""
 
 
 @dataclass(eq=False)
@@ -299,15 +267,17 @@ class ZenohTransport:
         if job.query is not None:
             try:  # the reply's QoS (congestion control, priority) follows the query's
                 if ok:
-                    job.query.reply(job.query.key_expr, payload, encoding=MSGPACK)
+                    job.query.reply(job.query.key_expr, payload, encoding=MSGPACK_ENCODING)
                 else:
-                    job.query.reply_err(payload, encoding=MSGPACK)
+                    job.query.reply_err(payload, encoding=MSGPACK_ENCODING)
             finally:
                 job.query.drop()  # finalize: the querier's get completes now
             return
         assert self._session is not None  # the session outlives the replier thread
         key = self.keys.detections(job.key_id) if ok else self.keys.errors(job.key_id)
-        self._session.put(key, payload, encoding=MSGPACK, congestion_control=zenoh.CongestionControl.BLOCK)
+        self._session.put(
+            key, payload, encoding=MSGPACK_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
+        )
 
 
 def _recv(channel: zenoh.handlers.Handler[T]) -> T | None:

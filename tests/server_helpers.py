@@ -16,14 +16,14 @@ import torch
 import uvicorn
 from conftest import kitti_scan
 
+from clients.bench.server import free_port
+from contract import SectorMessage
 from model.config import tiny
 from model.detector import PHiM
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 from server.app import create_app
-from server.bench import free_port
 from server.default_model import DEFAULT_SEED, load_default_model
-from server.protocol import SectorMessage
 from server.settings import Settings
 
 FIELDS = ("x", "y", "z", "intensity")

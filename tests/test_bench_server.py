@@ -7,17 +7,17 @@ import json
 import time
 
 import pytest
-from typer.testing import CliRunner
+from click.testing import CliRunner
 
+from clients.bench.echo import request_header
+from clients.bench.server import Floor, spawned_echo
 from clients.connect import Transport
-from server.bench import Floor, spawned_echo
-from server.bench_echo import request_header
-from server.cli import app
+from phim.cli import main as app
 
 
 @pytest.mark.parametrize("transport", [Transport.HTTP, Transport.ZENOH])
 def test_the_echo_holds_for_the_time_asked_and_answers_over_each_transport(transport: Transport) -> None:
-    with spawned_echo(threads=1) as echo:
+    with spawned_echo() as echo:
         floor = Floor(transport, echo.url, echo.zenoh_connect[0])
         try:
             for hold_ms in (0.0, 20.0):

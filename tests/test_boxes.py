@@ -10,8 +10,8 @@ import pytest
 import shapely
 import torch
 
-import model.boxes as boxes_mod
-from model.boxes import (
+import model.geometry.boxes as boxes_mod
+from model.geometry.boxes import (
     Detections,
     box_corners_bev,
     iou_bev_upper_bound,
@@ -21,7 +21,7 @@ from model.boxes import (
     rotated_iou_bev,
     rotated_iou_bev_aligned,
 )
-from model.nms import class_nms, nms_rotated
+from model.geometry.nms import class_nms, nms_rotated
 
 # ----------------------------------------------------------------------------------------- reference
 

@@ -17,8 +17,8 @@ from clients.base import DetectorClient, RequestTimeout, ServerError, TransportE
 from clients.connect import Transport, make_client
 from clients.http_client import HttpClient
 from clients.zenoh_client import NotSupported, ZenohClient
+from contract import DetectionsReply, ErrorCode
 from model.stream import StreamingDetector
-from server.protocol import DetectionsReply, ErrorCode
 
 SCANS = range(6)  # every KITTI scan in shared/data/kitti_object
 

@@ -19,10 +19,13 @@ from test_sparse_conv import BATCH, SHAPE, random_sparse
 from test_streaming import assert_same_detections, make_model, stream
 
 from model.config import ScanImpl
-from model.scan import scan_available, selective_scan, selective_scan_ref
+from model.geometry.rulebook import Plane
+from model.geometry.sparse_tensor import SparseTensor
+from model.layers.sparse_conv import SparseConv2d, SparseInverseConv2d
+from model.ops.scan import scan_available, selective_scan
+from model.ops.scan_torch import selective_scan_ref
+from model.ops.sparse_conv import gather_mm_scatter
 from model.sectors import split_turn
-from model.sparse_conv import Plane, SparseConv2d, SparseInverseConv2d, gather_mm_scatter
-from model.sparse_tensor import SparseTensor
 from model.stream import StreamingDetector
 from model.train.distributed import Dist
 from model.train.loop import TrainConfig, train
@@ -77,7 +80,7 @@ def test_sparse_conv_on_cuda_equals_cpu(plane, subm, dtype):
 
 @pytest.mark.parametrize("ident", [None, 4])
 def test_fused_gather_mm_scatter_matches_torch_in_values_and_gradients(ident):
-    from model.sparse_conv_triton import gather_mm_scatter_triton  # triton: only where CUDA is
+    from model.ops.sparse_conv_triton import gather_mm_scatter_triton  # triton: only where CUDA is
 
     x = random_sparse(SHAPE, BATCH, 0.3, 48, seed=9, dtype=torch.float32)
     conv = SparseConv2d(48, 136, 3, (1, 1), Plane.RZ, subm=True)

@@ -15,9 +15,10 @@ from conftest import SHARED_DATA
 
 import clients.sectorizer
 from model.config import CLASS_NAMES
-from model.data.datasets import DataKind, DataSpec, iter_labeled, list_scan_paths, parse_data_spec
+from model.data.datasets import DataKind, DataSpec, list_scan_paths, parse_data_spec
 from model.data.labels import labels_for, nuscenes_boxes_path, read_kitti_labels, read_nuscenes_boxes
 from model.data.readers import Spin, read_labeled, read_scan, sector_of_xy, write_labeled, write_native_scan
+from model.data.sources import iter_labeled
 from model.data.types import LEVEL_1, LEVEL_2, GroundTruth, LabeledScan, points_in_boxes
 from model.sectors import sector_of_points
 

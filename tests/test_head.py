@@ -8,9 +8,9 @@ import math
 import pytest
 import torch
 
-from model.boxes import Detections
 from model.config import BEVConfig, HeadConfig, paper, tiny
-from model.head import HEATMAP_PRIOR_BIAS, CenterHead, HeadOutput, decode, local_maxima
+from model.geometry.boxes import Detections
+from model.layers.head import HEATMAP_PRIOR_BIAS, CenterHead, HeadOutput, decode, local_maxima
 
 BEV = BEVConfig(x_min=-20.48, x_max=20.48, y_min=-10.24, y_max=10.24, cell=0.32)  # 128 x 64 cells
 CFG = HeadConfig()  # thresholds 0.75 / 0.6 / 0.55, rectifier 0.68 / 0.71 / 0.65, score threshold 0.1

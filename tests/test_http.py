@@ -24,8 +24,8 @@ from server_helpers import (
     serve,
 )
 
+from contract import DetectionsReply, ErrorReply, decode_response, encode_sector
 from model.stream import StreamingDetector
-from server.protocol import DetectionsReply, ErrorReply, decode_response, encode_sector
 
 MSGPACK = {"Content-Type": "application/msgpack"}
 LIMITS = dict(max_body_bytes=2 * 2**20, max_points=50_000, max_string_len=64)

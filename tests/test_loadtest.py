@@ -13,17 +13,17 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from click.testing import CliRunner
 from client_helpers import EVERY, Served, png_is_a_picture, serve_both
 from conftest import KITTI_VELODYNE
 from server_helpers import default_detector
-from typer.testing import CliRunner
 
 from clients.connect import Transport
 from clients.loadtest.config import LoadTestConfig, Mode, OutputConfig, SourceConfig
 from clients.loadtest.report import LoadTestReport
 from clients.loadtest.run import run_loadtest
 from model.stream import StreamingDetector
-from server.cli import app
+from phim.cli import main as app
 
 SOURCE = SourceConfig(folder=KITTI_VELODYNE, max_scans=3, every=EVERY)
 HEADLINE = ("sent", "answered", "errors", "lost", "achieved_sectors_per_s", "p50_ms", "p99_ms")

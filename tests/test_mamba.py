@@ -11,8 +11,8 @@ import torch.nn.functional as F
 from test_scan import CPU_IMPLS
 
 from model.config import MambaConfig, ScanImpl
-from model.mamba import Mamba, MambaState, Packing, conv_gather_indices
-from model.scan import selective_scan_ref
+from model.layers.mamba import Mamba, MambaState, Packing, conv_gather_indices
+from model.ops.scan_torch import selective_scan_ref
 
 CFG = MambaConfig(d_state=4, d_conv=4, expand=2, chunk_size=8)
 

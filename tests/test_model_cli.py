@@ -6,9 +6,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-from typer.testing import CliRunner
+from click.testing import CliRunner
 
-from server.cli import app
+from phim.cli import main as app
 
 
 def test_model_info_paper_is_within_ten_percent_of_the_papers_parameters(tmp_path: Path) -> None:
@@ -49,6 +49,6 @@ def test_bench_ops_credits_every_op_to_a_model_function() -> None:
     assert sum(r["ops"] for r in rows.values()) == report["ops"] > report["ops_outside_scan"] > 0
     assert sum(r["syncs"] for r in rows.values()) == report["syncs"] > 0
     # the Mamba layers, the rule books (their `nonzero` waits for a GPU) and the chunked scan are all seen
-    assert rows["model/mamba.py: forward"]["ops"] > 0
-    assert rows["model/sparse_conv.py: build_strided_rulebook"]["syncs"] > 0
-    assert any(w.startswith("model/scan.py") for w in rows)
+    assert rows["model/layers/mamba.py: forward"]["ops"] > 0
+    assert rows["model/geometry/rulebook.py: build_strided_rulebook"]["syncs"] > 0
+    assert any(w.startswith("model/ops/scan_torch.py") for w in rows)

@@ -9,10 +9,10 @@ import pytest
 import torch
 from torch import Tensor
 
-from model.bev_backbone import BasicBlock, BEVBackbone
 from model.config import BEVConfig, PolarGridConfig, paper, tiny
-from model.polar_bev import PolarToBEV
-from model.sparse_tensor import SparseTensor, linear_key
+from model.geometry.sparse_tensor import SparseTensor, linear_key
+from model.layers.bev_backbone import BasicBlock, BEVBackbone
+from model.layers.polar_bev import PolarToBEV
 
 
 def sparse(

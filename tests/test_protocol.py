@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from server.protocol import (
+from contract import (
     HTTP_STATUS,
     DetectionsReply,
     ErrorCode,
@@ -208,5 +208,5 @@ def test_error_round_trip_and_http_status():
 
 
 def test_protocol_needs_no_torch():
-    code = "import sys, server.protocol; assert 'torch' not in sys.modules, 'protocol imported torch'"
+    code = "import sys, contract; assert 'torch' not in sys.modules, 'the contract imported torch'"
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -10,17 +10,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from client_helpers import EVERY, Served, png_is_a_picture, serve_both
 from conftest import KITTI_VELODYNE, SHARED_DATA
 from server_helpers import default_detector
-from typer.testing import CliRunner
 
 from clients.connect import Transport
 from clients.predictions import read_predictions, scan_predictions
 from clients.replay import ReplayConfig, replay
 from model.data.labels import kitti_labels_for, nuscenes_labels_for
 from model.data.readers import Spin, find_scans, read_scan, write_native_scan
-from server.cli import app
+from phim.cli import main as app
 
 NUSCENES = (
     SHARED_DATA / "nuscenes_sample" / "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"

@@ -9,9 +9,11 @@ import sys
 import pytest
 import torch
 
-from model import runtime, scan
 from model.config import ScanImpl
-from model.scan import scan_available, selective_scan, selective_scan_chunked, selective_scan_ref
+from model.ops import scan
+from model.ops import triton_support as runtime
+from model.ops.scan import scan_available, selective_scan
+from model.ops.scan_torch import selective_scan_chunked, selective_scan_ref
 
 CPU_IMPLS = [impl for impl in ScanImpl if scan_available(impl, torch.device("cpu"))]
 
@@ -193,11 +195,11 @@ def test_triton_needs_cuda_and_a_c_compiler(monkeypatch, tmp_path):
 def test_dispatch_logs_once_and_rejects_unavailable(monkeypatch, caplog):
     args = _inputs([5, 6], seed=10)
     monkeypatch.setattr(scan, "_announced", set())
-    with caplog.at_level(logging.INFO, logger="model.scan"):
+    with caplog.at_level(logging.INFO, logger="model.ops.scan"):
         for impl in (ScanImpl.AUTO, ScanImpl.CHUNKED):  # AUTO on the CPU is the chunked scan
             y_c, _ = selective_scan(*args, impl=impl)
         y_r, _ = selective_scan(*args, impl=ScanImpl.REFERENCE)
-    messages = [r.getMessage() for r in caplog.records if r.name == "model.scan"]
+    messages = [r.getMessage() for r in caplog.records if r.name == "model.ops.scan"]
     assert messages == ["selective scan implementation: chunked", "selective scan implementation: reference"]
     torch.testing.assert_close(y_c, y_r, rtol=1e-10, atol=1e-10)
     with pytest.raises(RuntimeError, match="'triton' is not available on cpu"):  # asked for, so no fallback

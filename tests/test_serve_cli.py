@@ -23,7 +23,7 @@ from conftest import REPO
 from pydantic import ValidationError
 from server_helpers import free_port, kitti_sectors, sector_msg
 
-from server.protocol import DetectionsReply, decode_response, encode_sector
+from contract import DetectionsReply, decode_response, encode_sector
 from server.settings import Settings
 
 DOCKERFILE = REPO / "Dockerfile"

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from click.testing import CliRunner
 from conftest import SHARED_DATA
-from typer.testing import CliRunner
 
 from model.data.sim import SceneConfig, Sensor, SimConfig, actors, load_elevations, sensor_spec, simulate
 from model.data.sim.ground import Ground
@@ -276,7 +276,7 @@ def test_pedestrians_and_cyclists_show_their_front():
 
 
 def test_cli_writes_a_png_and_bench_reports(tmp_path):
-    from server.cli import app
+    from phim.cli import main as app
 
     out = tmp_path / "scan.png"
     result = CliRunner().invoke(app, ["sim", "--seed", "3", "--sensor", "waymo-top", "--png", str(out)])

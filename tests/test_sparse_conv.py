@@ -9,9 +9,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from model.decomposed import DecomposedDown, DecomposedUp
-from model.sparse_conv import Plane, SparseConv2d, SparseInverseConv2d, as_kernel, conv_out_shape
-from model.sparse_tensor import SparseTensor, linear_key, to_dense
+from model.geometry.rulebook import Plane, as_kernel, conv_out_shape
+from model.geometry.sparse_tensor import SparseTensor, linear_key, to_dense
+from model.layers.decomposed import DecomposedDown, DecomposedUp
+from model.layers.sparse_conv import SparseConv2d, SparseInverseConv2d
 
 SHAPE = (12, 20, 6)  # (R, THETA, Z)
 BATCH = 2

@@ -9,16 +9,16 @@ import pytest
 import torch
 from conftest import kitti_scan
 
-from model.boxes import Detections
 from model.config import ScanImpl, tiny
+from model.data.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.fold_bn import fold_batchnorms
-from model.mamba import Mamba
-from model.phim_block import StreamLayout
+from model.geometry.boxes import Detections
+from model.layers.mamba import Mamba
+from model.layers.phim_block import StreamLayout
+from model.layers.voxelize import PointsError
 from model.sectors import split_turn
 from model.stream import StreamingDetector
-from model.synthetic import synthetic_turn
-from model.voxelize import PointsError
 
 
 def make_model() -> PHiM:
@@ -90,7 +90,7 @@ def test_partial_turn_differs_from_full(model: PHiM):
 
 def test_batched_equals_alone_in_any_order(model: PHiM):
     det = StreamingDetector(model)
-    turns = [kitti_scan(0), kitti_scan(1), synthetic_turn(seed=3)]
+    turns = [kitti_scan(0), kitti_scan(1), torch.from_numpy(synthetic_turn(seed=3))]
     sectors = [split_turn(t, model.cfg.sectors_per_turn) for t in turns]
     alone = [stream(det, s)[0] for s in sectors]
     for order in ([0, 1, 2], [2, 0, 1]):
@@ -140,7 +140,7 @@ def test_reset_starts_fresh(model: PHiM):
 
 
 def test_set_scan_changes_how_not_what(model: PHiM):
-    sectors = split_turn(synthetic_turn(seed=5)[::4], model.cfg.sectors_per_turn)[:2]
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)[::4]), model.cfg.sectors_per_turn)[:2]
     chunked, _ = stream(StreamingDetector(model), sectors)
     ref_model = copy.deepcopy(model)
     ref_model.set_scan(ScanImpl.REFERENCE)

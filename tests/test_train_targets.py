@@ -12,12 +12,12 @@ import torch
 
 from model.config import HeadingCode, tiny
 from model.data.readers import sector_of_xy
+from model.data.synthetic import synthetic_turn
 from model.data.types import GroundTruth, LabeledScan, points_in_boxes
-from model.head import HeadOutput, decode, decode_yaw, encode_yaw
-from model.synthetic import synthetic_turn
+from model.layers.head import HeadOutput, decode, decode_yaw, decoded_boxes, encode_yaw
+from model.layers.head_targets import TargetConfig, build_targets, gaussian_radius
 from model.train.data import AugmentConfig, SampleConfig, augment, make_sample
-from model.train.loss import LossConfig, center_loss, decoded_boxes, focal_loss
-from model.train.targets import TargetConfig, build_targets, gaussian_radius
+from model.train.loss import LossConfig, center_loss, focal_loss
 
 CFG = tiny()
 BOXES = np.array(
@@ -109,7 +109,7 @@ def test_focal_loss_prefers_the_right_heatmap():
 
 
 def _scan() -> LabeledScan:
-    pts = synthetic_turn(0).numpy()
+    pts = synthetic_turn(0)
     # drop a cloud of points into every box so that all four are targets
     rng = np.random.default_rng(0)
     inside = [b[:3] + (rng.random((50, 3)) - 0.5) * b[3:6] * 0.5 for b in BOXES]

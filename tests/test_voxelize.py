@@ -11,8 +11,8 @@ import torch
 from torch import Tensor
 
 from model.config import PolarGridConfig, VFEConfig, tiny
-from model.sparse_tensor import linear_key
-from model.voxelize import PointsError, PolarVoxelizer, validate_points, voxel_max
+from model.geometry.sparse_tensor import linear_key
+from model.layers.voxelize import PointsError, PolarVoxelizer, validate_points, voxel_max
 
 GRID = tiny().grid  # r 1..52.2 (128 bins), theta 256 bins, z -3..3 (16 bins)
 KITTI = Path("/work/shared/data/kitti_object/velodyne/000000.bin")

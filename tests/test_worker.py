@@ -18,8 +18,8 @@ from server_helpers import (
     sector_msg,
 )
 
+from contract import DetectionsReply, ErrorCode, ServiceError
 from model.stream import StreamingDetector
-from server.protocol import DetectionsReply, ErrorCode, ServiceError
 from server.worker import Worker, WorkerConfig
 
 

@@ -25,17 +25,10 @@ from server_helpers import (
     serve,
 )
 
+from contract import DetectionsReply, ErrorCode, ErrorReply, KeySpace, Limits, decode_response, encode_sector
 from model.stream import StreamingDetector
-from server.protocol import (
-    DetectionsReply,
-    ErrorCode,
-    ErrorReply,
-    Limits,
-    decode_response,
-    encode_sector,
-)
 from server.worker import Worker, WorkerConfig
-from server.zenoh_transport import MSGPACK, KeySpace, ZenohConfig, ZenohTransport, open_session
+from server.zenoh_transport import MSGPACK_ENCODING, ZenohConfig, ZenohTransport, open_session
 
 GET_TIMEOUT_S = 30.0  # a guard against hangs; replies come as soon as the (CPU) forward is done
 BLOCK = zenoh.CongestionControl.BLOCK
@@ -81,11 +74,11 @@ def one_answer(replies: zenoh.handlers.Handler[zenoh.Reply], key: str) -> Detect
     if got[0].ok is not None:
         sample = got[0].ok
         assert str(sample.key_expr) == key
-        assert sample.encoding == MSGPACK
+        assert sample.encoding == MSGPACK_ENCODING
         out = decode_response(sample.payload.to_bytes())
         assert isinstance(out, DetectionsReply)
         return out
-    assert got[0].err is not None and got[0].err.encoding == MSGPACK
+    assert got[0].err is not None and got[0].err.encoding == MSGPACK_ENCODING
     out = decode_response(got[0].err.payload.to_bytes())
     assert isinstance(out, ErrorReply)
     return out
@@ -93,7 +86,9 @@ def one_answer(replies: zenoh.handlers.Handler[zenoh.Reply], key: str) -> Detect
 
 def send(client: zenoh.Session, key: str, body: bytes) -> zenoh.handlers.Handler[zenoh.Reply]:
     """Start a get (does not wait for the reply)."""
-    return client.get(key, payload=body, encoding=MSGPACK, congestion_control=BLOCK, timeout=GET_TIMEOUT_S)
+    return client.get(
+        key, payload=body, encoding=MSGPACK_ENCODING, congestion_control=BLOCK, timeout=GET_TIMEOUT_S
+    )
 
 
 def send_sector(client: zenoh.Session, stream: str, seq: int, points: np.ndarray) -> Any:
@@ -259,7 +254,7 @@ def test_pubsub_publishes_detections_and_errors(
     with (
         c.declare_subscriber(KEYS.detections(stream), zenoh.handlers.FifoChannel(16)) as dets,
         c.declare_subscriber(KEYS.errors(stream), zenoh.handlers.FifoChannel(16)) as errs,
-        c.declare_publisher(KEYS.sectors(stream), encoding=MSGPACK, congestion_control=BLOCK) as pub,
+        c.declare_publisher(KEYS.sectors(stream), encoding=MSGPACK_ENCODING, congestion_control=BLOCK) as pub,
     ):
         deadline = time.monotonic() + 5
         while not pub.matching_status and time.monotonic() < deadline:

@@ -6,7 +6,7 @@ import enum
 from dataclasses import dataclass
 
 from clients.base import RequestTimeout, ServerError, TransportError
-from server.protocol import DetectionsReply
+from contract import DetectionsReply
 
 
 class Lost(enum.StrEnum):

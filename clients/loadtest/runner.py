@@ -23,7 +23,7 @@ from clients.base import ClientError, DetectorClient, ServerError, TransportErro
 from clients.loadtest.config import LoadTestConfig, Mode
 from clients.loadtest.record import Record
 from clients.loadtest.source import SectorSource
-from server.protocol import SectorMessage
+from contract import SectorMessage
 
 Progress = Callable[["StepRun"], None]
 

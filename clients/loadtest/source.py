@@ -10,8 +10,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from clients.loadtest.config import SourceConfig
-from clients.sectorizer import MODEL_FIELDS, Spin, split_scan
+from clients.sectorizer import Spin, split_scan
+from contract import REQUIRED_FIELDS
 from model.data.readers import find_scans, read_scan
+from model.data.synthetic import synthetic_turn
 
 Turn = list[tuple[int, np.ndarray]]  # (sector_index, (N, 4) float32) in sweep order
 
@@ -20,7 +22,7 @@ Turn = list[tuple[int, np.ndarray]]  # (sector_index, (N, 4) float32) in sweep o
 class SectorSource:
     turns: list[Turn]
     description: str
-    fields: tuple[str, ...] = MODEL_FIELDS
+    fields: tuple[str, ...] = REQUIRED_FIELDS
 
     def sector(self, vehicle: int, k: int) -> tuple[int, np.ndarray]:
         """The k-th sector a vehicle sends: vehicles start on different turns and cycle through them."""
@@ -40,12 +42,10 @@ def load_source(cfg: SourceConfig, sectors_per_turn: int) -> SectorSource:
             raise FileNotFoundError(f"{cfg.folder}: no .bin / .npz / .pcd.bin scans")
         turns = [_turn(read_scan(p), sectors_per_turn, cfg.every) for p in paths]
         return SectorSource(turns, f"{len(paths)} scans from {cfg.folder} (every {cfg.every})")
-    from model.synthetic import synthetic_turn  # torch: only when no recorded data is given
-
     turns = []
     for seed in range(cfg.synthetic_turns):
-        pts = synthetic_turn(seed=seed).numpy()
-        turns.append(_split(pts, MODEL_FIELDS, sectors_per_turn, cfg.every))
+        pts = synthetic_turn(seed=seed)
+        turns.append(_split(pts, REQUIRED_FIELDS, sectors_per_turn, cfg.every))
     return SectorSource(turns, f"{cfg.synthetic_turns} synthetic turns (every {cfg.every})")
 
 

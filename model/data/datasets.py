@@ -6,20 +6,15 @@
   nuscenes:DIR    a folder of nuScenes LIDAR_TOP *.pcd.bin sweeps, each with NAME_boxes.txt beside it
   native:DIR      a folder of native .npz scans (ground truth optional, see docs/data.md)
 
-`iter_labeled(spec)` yields `LabeledScan`s in file-name order (model.data.readers.read_labeled);
-`list_scan_paths(parse_data_spec(spec))` lists a folder spec's scan files.
+`list_scan_paths(parse_data_spec(spec))` lists a folder spec's scan files; `model.data.sources` reads them
+(and runs the simulator) as `LabeledScan`s.
 """
 
 from __future__ import annotations
 
 import enum
-import itertools
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-
-from model.data.readers import DEFAULT_SECTORS, read_labeled
-from model.data.types import LabeledScan
 
 SPEC_HELP = "sim, kitti:DIR, nuscenes:DIR or native:DIR"
 
@@ -89,17 +84,3 @@ def list_scan_paths(spec: DataSpec) -> list[Path]:
     if not files:
         raise FileNotFoundError(f"data spec {spec}: no {wanted} in {root}")
     return files
-
-
-def iter_labeled(
-    spec: str | DataSpec, sectors: int = DEFAULT_SECTORS, seed: int = 0
-) -> Iterator[LabeledScan]:
-    """The labelled scans of a data set, in order (the simulator: endless, scans of stream `seed`)."""
-    parsed = parse_data_spec(spec) if isinstance(spec, str) else spec
-    if parsed.kind is DataKind.SIM:
-        from model.data.sources import SimSource  # the simulator is only imported when asked for
-
-        source = SimSource(seed)
-        return (source(i) for i in itertools.count())
-    files = list_scan_paths(parsed)  # checked now, before the first scan is asked for
-    return (read_labeled(path, sectors) for path in files)

@@ -22,13 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from model.config import CLASS_NAMES, POINT_FIELDS, PHiMConfig
+from contract import POINT_FIELDS, REQUIRED_FIELDS
+from model.config import CLASS_NAMES, PHiMConfig
 from model.data.labels import labeled_targets
 from model.data.types import GroundTruth, LabeledScan
 
 SCAN_SUFFIXES = (".bin", ".npz")
 DEFAULT_SECTORS = PHiMConfig.sectors_per_turn  # the model's default sectors per turn (4)
-MODEL_FIELDS = POINT_FIELDS[:4]  # the columns every scan must have
 
 
 class Spin(enum.StrEnum):
@@ -157,12 +157,12 @@ def sector_of_xy(x: np.ndarray, y: np.ndarray, sectors: int) -> np.ndarray:
 def model_columns(points: np.ndarray, fields: tuple[str, ...]) -> tuple[np.ndarray, tuple[str, ...]]:
     """Reorder (N, C) columns to x, y, z, intensity first (matched case-insensitively), the rest after."""
     lower = [f.lower() for f in fields]
-    missing = [f for f in MODEL_FIELDS if f not in lower]
+    missing = [f for f in REQUIRED_FIELDS if f not in lower]
     if missing:
         raise ValueError(f"fields: {missing} not among the scan's fields {list(fields)}")
-    first = [lower.index(f) for f in MODEL_FIELDS]
+    first = [lower.index(f) for f in REQUIRED_FIELDS]
     order = first + [i for i in range(len(fields)) if i not in first]
-    names = MODEL_FIELDS + tuple(fields[i] for i in order[len(MODEL_FIELDS) :])
+    names = REQUIRED_FIELDS + tuple(fields[i] for i in order[len(REQUIRED_FIELDS) :])
     return np.ascontiguousarray(points[:, order], dtype=np.float32), names
 
 

@@ -4,19 +4,22 @@
   uses stream 0 by default and evaluation stream 7, so held-out scans are never trained on.
 - recorded data (`kitti:DIR`, `nuscenes:DIR`, `native:DIR`): the folder's scans, cycled; training visits
   them in a fresh random order every pass (seeded), evaluation in file order.
+`iter_labeled(spec)` yields a data set's scans in order.
 Sources are plain picklable objects, so data-loader worker processes can build scans themselves.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
-from model.data.readers import read_labeled
+from model.data.datasets import DataKind, DataSpec, list_scan_paths, parse_data_spec
+from model.data.readers import DEFAULT_SECTORS, read_labeled
 from model.data.sim import SimConfig, simulate
 from model.data.types import LabeledScan
 
@@ -64,3 +67,15 @@ def scan_source(spec: str, seed: int, shuffle: bool = True) -> SimSource | FileS
     if not paths:
         raise ValueError(f"data {spec!r}: no scans found")
     return FileSource(paths, seed if shuffle else None)
+
+
+def iter_labeled(
+    spec: str | DataSpec, sectors: int = DEFAULT_SECTORS, seed: int = 0
+) -> Iterator[LabeledScan]:
+    """The labelled scans of a data set, in order (the simulator: endless, scans of stream `seed`)."""
+    parsed = parse_data_spec(spec) if isinstance(spec, str) else spec
+    if parsed.kind is DataKind.SIM:
+        source = SimSource(seed)
+        return (source(i) for i in itertools.count())
+    files = list_scan_paths(parsed)  # checked now, before the first scan is asked for
+    return (read_labeled(path, sectors) for path in files)

@@ -1,7 +1,7 @@
 """Labelled scans: the one shape every data source (simulator, KITTI, nuScenes, native files) yields.
 
 Frame: the sensor frame, x forward, y left, z up (metres). Boxes are (x, y, z, l, w, h, yaw): z the box
-centre, l along the heading, yaw counter-clockwise from +x (radians), as `model.boxes`.
+centre, l along the heading, yaw counter-clockwise from +x (radians), as `model.geometry.boxes`.
 Classes are indices into `model.config.CLASS_NAMES` (VEHICLE, PEDESTRIAN, CYCLIST).
 Difficulty follows Waymo: a box with at most `LEVEL_2_MAX_POINTS` points is LEVEL_2, and a box with no
 point at all is not a target (evaluation drops it).

@@ -19,17 +19,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from model.boxes import rotated_iou_3d_aligned
+from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import LabeledScan
 from model.detector import PHiM
 from model.eval.metrics import MetricsConfig
-from model.phim_block import StreamLayout
-from model.train.data import AugmentConfig, SampleConfig, make_sample
-from model.train.loss import decoded_boxes, gather_cells, regression_at
-
-NO_AUGMENT = SampleConfig(
-    augment=AugmentConfig(rotate=False, flip=False, scale=(1.0, 1.0)), random_start=False
-)
+from model.geometry.boxes import rotated_iou_3d_aligned
+from model.layers.head import decoded_boxes, gather_cells, regression_at
+from model.layers.head_targets import BEVTargets, TargetConfig, build_targets
+from model.layers.phim_block import StreamLayout
 
 # per target box: label, centre error (m), |dz| (m), |l/l'-1|, |w/w'-1|, |h/h'-1|, axis error (deg),
 # direction flipped (0/1), IoU, IoU with the true yaw, heatmap score at the centre
@@ -71,16 +68,26 @@ def box_errors(pred: Tensor, true: Tensor, score: Tensor) -> Tensor:
     return torch.stack(cols, 1)
 
 
+def turn_targets(scan: LabeledScan, model: PHiM) -> tuple[list[Tensor], BEVTargets]:
+    """The scan as the model's sectors in azimuth order (no augmentation) and the full turn's training
+    targets: every labelled box with at least one point, as training builds them."""
+    cfg = model.cfg
+    points = feature_columns(scan, cfg.vfe.point_features)  # (N, C)
+    sector = sector_of_xy(points[:, 0], points[:, 1], cfg.sectors_per_turn)  # (N,)
+    sectors = [torch.from_numpy(points[sector == k]).to(model.device) for k in range(cfg.sectors_per_turn)]
+    seen = scan.gt.num_points > 0  # a box without points is not a target (Waymo)
+    boxes, labels = scan.gt.boxes[seen], scan.gt.labels[seen]
+    return sectors, build_targets(boxes, labels, len(cfg.head.class_names), cfg.bev, TargetConfig())
+
+
 @torch.inference_mode()
 def diagnose_scan(model: PHiM, scan: LabeledScan) -> np.ndarray:
     """One scan -> (T, 1 + len(COLUMNS) + len(CONTEXT)) float64 rows per target box: the label, COLUMNS,
     CONTEXT."""
-    sample = make_sample(scan, model.cfg, NO_AUGMENT, np.random.default_rng(0))
+    sectors, t = turn_targets(scan, model)
     dev = model.device
-    sectors = [s.to(dev) for s in sample.sectors]
     enc = model.encode(sectors, StreamLayout.single_stream(len(sectors), dev), model.init_states(1))
     out = model.predict([enc.sectors])  # the full turn
-    t = sample.targets[-1]
     _, _, h, w = out.heatmap.shape
     flat = torch.from_numpy(t.index).to(dev)
     reg = regression_at(out, flat)  # (T, 6 + R)

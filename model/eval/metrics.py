@@ -27,10 +27,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from model.boxes import rotated_iou_3d
 from model.config import CLASS_NAMES
 from model.data.types import GroundTruth, Predictions
 from model.eval.assignment import max_weight_matching
+from model.geometry.boxes import rotated_iou_3d
 
 LEVEL_NAMES: tuple[str, str] = ("LEVEL_1", "LEVEL_2")
 LEVELS: tuple[int, int] = (1, 2)  # difficulty values of model.data.types (LEVEL_1, LEVEL_2)

@@ -21,7 +21,7 @@ from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import GroundTruth, LabeledScan, Predictions
 from model.detector import PHiM
 from model.eval.metrics import MetricsConfig, crop_to_fov, evaluate
-from model.phim_block import StreamLayout
+from model.layers.phim_block import StreamLayout
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 from model.config import PHiMConfig
 from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import LabeledScan
-from model.train.targets import BEVTargets, TargetConfig, build_targets
+from model.layers.head_targets import BEVTargets, TargetConfig, build_targets
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ import torch.distributed as torch_dist
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 
-from model.runtime import pick_device
+from model.device import pick_device
 
 log = logging.getLogger("phim.train")
 

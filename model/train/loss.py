@@ -17,12 +17,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from model.boxes import rotated_iou_3d_aligned
 from model.config import BEVConfig, HeadingCode
-from model.head import HeadOutput, decode_yaw, encode_yaw
-from model.train.targets import BEVTargets
-
-MAX_LOG_DIM = 4.0  # exp(4) = 55 m: keeps early, untrained dims finite
+from model.geometry.boxes import rotated_iou_3d_aligned
+from model.layers.head import HeadOutput, decoded_boxes, encode_yaw, gather_cells, regression_at
+from model.layers.head_targets import BEVTargets
 
 
 @dataclass(frozen=True)
@@ -54,30 +52,6 @@ def focal_loss(logits: Tensor, target: Tensor) -> Tensor:
     pos_loss = (log_p * (1 - p) ** 2)[pos].sum()
     neg_loss = (log_not_p * p**2 * (1 - target) ** 4)[~pos].sum()
     return -(pos_loss + neg_loss) / pos.sum().clamp(min=1)
-
-
-def gather_cells(maps: Tensor, flat: Tensor) -> Tensor:
-    """maps (B, C, H, W), flat (T,) indices into B * H * W -> (T, C)."""
-    b, c, h, w = maps.shape
-    return maps.permute(0, 2, 3, 1).reshape(b * h * w, c).index_select(0, flat).float()
-
-
-def regression_at(out: HeadOutput, flat: Tensor) -> Tensor:
-    """The regression channels (offset, z, log dims, rot) at flat cells (T,) -> (T, 6 + R)."""
-    return gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)
-
-
-def decoded_boxes(
-    reg: Tensor, flat: Tensor, width: int, height: int, bev: BEVConfig, heading: HeadingCode
-) -> Tensor:
-    """reg (T, 6 + R) predicted at flat cells (T,) -> (T, 7) boxes, decoded as `model.head.decode` does."""
-    pix = flat % (width * height)
-    row, col = pix // width, pix % width
-    x = bev.x_min + (col.float() + reg[:, 0]) * bev.cell
-    y = bev.y_min + (row.float() + reg[:, 1]) * bev.cell
-    dims = torch.exp(reg[:, 3:6].clamp(max=MAX_LOG_DIM))
-    yaw = decode_yaw(reg[:, 6:].unbind(1), heading)
-    return torch.cat([torch.stack([x, y, reg[:, 2]], 1), dims, yaw[:, None]], 1)
 
 
 def center_loss(

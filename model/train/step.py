@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from model.detector import PHiM
-from model.phim_block import StreamLayout
+from model.layers.phim_block import StreamLayout
 from model.train.data import TrainSample
 from model.train.loss import LossConfig, LossParts, center_loss
 

@@ -68,7 +68,7 @@ def sim_cmd(
     extent: Annotated[float, typer.Option(help="half width of the picture (m)")] = 50.0,
 ) -> None:
     """Simulate one LiDAR turn through a random street scene and summarize it."""
-    from model.runtime import tune_malloc
+    from phim.process import tune_malloc
 
     tune_malloc()
     start = time.perf_counter()
@@ -86,7 +86,7 @@ def bench_sim_cmd(
     """Simulator throughput, single-threaded: scans per second over N seeds."""
     import torch
 
-    from model.runtime import tune_malloc
+    from phim.process import tune_malloc
 
     tune_malloc()
     torch.set_num_threads(1)  # only the sector lookup uses torch; one process per core is the plan
@@ -115,8 +115,3 @@ def bench_sim_cmd(
         return
     for key, value in result.items():
         typer.echo(f"{key:>18}  {value:.1f}" if isinstance(value, float) else f"{key:>18}  {value}")
-
-
-def register(app: typer.Typer) -> None:
-    """Adds `phim sim`; `bench_sim_cmd` goes under `phim bench sim`."""
-    app.command("sim")(sim_cmd)

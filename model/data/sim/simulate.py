@@ -1,7 +1,8 @@
 """`simulate(seed, cfg)`: one labelled LiDAR turn ray-cast through a random street scene.
 
 The sweep starts at azimuth -pi and turns counter-clockwise, so points come in firing order with time and
-azimuth increasing together, and the model's sectors (model/sectors.py) arrive in index order 0, 1, 2, 3.
+azimuth increasing together, and the model's sectors (`model.data.readers.sector_of_xy`) arrive in index
+order 0, 1, 2, 3.
 """
 
 from __future__ import annotations
@@ -10,15 +11,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
+from contract import REQUIRED_FIELDS
+from model.data.readers import sector_of_xy
 from model.data.sim.raycast import Rays, cast_solids
 from model.data.sim.scene import Scene, SceneConfig, make_scene
 from model.data.sim.sensors import Sensor, sensor_spec
 from model.data.types import GroundTruth, LabeledScan
-from model.sectors import sector_of_points
 
-FIELDS = ("x", "y", "z", "intensity")
 SECTORS = 4
 SIGNAL_RANGE = 10.0  # metres: a return's signal is intensity * (SIGNAL_RANGE / range)^2
 
@@ -54,10 +54,9 @@ def simulate(seed: int, cfg: SimConfig = DEFAULT) -> LabeledScan:
     points, ray = cast_scene(rng, scene, rays, cfg)
     firing = ray // len(rays.elevation)  # (N,)
     time = (firing / (cfg.firings * cfg.rate_hz)).astype(np.float32)
-    xs, ys = torch.from_numpy(points[:, 0].copy()), torch.from_numpy(points[:, 1].copy())
-    sector = sector_of_points(xs, ys, SECTORS).numpy()
+    sector = sector_of_xy(points[:, 0], points[:, 1], SECTORS)  # (N,)
     gt = GroundTruth.from_boxes(scene.boxes.astype(np.float32), scene.labels, points)
-    return LabeledScan(f"sim/{sensor}/{seed}", points, FIELDS, gt, time, sector)
+    return LabeledScan(f"sim/{sensor}/{seed}", points, REQUIRED_FIELDS, gt, time, sector)
 
 
 def cast_scene(

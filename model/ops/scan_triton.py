@@ -1,7 +1,7 @@
-"""Selective scan as three Triton kernels (CUDA): the fast twin of `scan.selective_scan_chunked`.
+"""Selective scan as three Triton kernels (CUDA): the fast twin of `scan_torch.selective_scan_chunked`.
 
-Same contract and the same chunked algorithm as the chunked scan (model/scan.py), but each phase is one
-kernel launch instead of a Python loop of small torch ops, and no step waits on the host:
+Same contract and the same chunked algorithm as the chunked scan (model/ops/scan_torch.py), but each phase is
+one kernel launch instead of a Python loop of small torch ops, and no step waits on the host:
 
 1. `_chunk_kernel` (one program per chunk x channel block): scan the chunk from zero, keep its final state
    and the sum of its deltas (the chunk's decay is exp(A * sum delta)).
@@ -25,7 +25,8 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
-from model.runtime import grads_by_recompute
+from model.ops.scan_torch import selective_scan_chunked
+from model.ops.triton_support import grads_by_recompute
 
 
 @triton.jit
@@ -153,8 +154,6 @@ class TritonScan(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gy, gfinal):  # type: ignore[override]
-        from model.scan import selective_scan_chunked
-
         u, delta, A, B, C, cu, h0 = ctx.saved_tensors
 
         def twin(u, delta, A, B, C, h0):
@@ -167,7 +166,7 @@ class TritonScan(torch.autograd.Function):
 def selective_scan_triton(
     u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, cu: Tensor, h0: Tensor | None, chunk: int
 ) -> tuple[Tensor, Tensor]:
-    """Same contract as `scan.selective_scan_ref`, on CUDA tensors."""
+    """Same contract as `scan_torch.selective_scan_ref`, on CUDA tensors."""
     if chunk < 1:
         raise ValueError("chunk_size must be >= 1")
     return TritonScan.apply(u, delta, A, B, C, cu, h0, chunk)

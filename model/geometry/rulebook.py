@@ -1,4 +1,5 @@
-"""Pure-torch sparse 2D convolutions applied on one plane of the 3D polar grid.
+"""Rule books of sparse 2D convolutions on one plane of the 3D polar grid: which input site feeds which
+output site through which kernel offset (the convs themselves: `model.layers.sparse_conv`).
 
 A `Plane` names the two spatial axes the 2D kernel slides over; the remaining spatial axis is folded into the
 batch, so sites in different batches or different slices of that third axis never interact.
@@ -12,27 +13,22 @@ k = (k0, k1), flat index k0 * K1 + k1.
 - inverse conv: the transposed conv on a rule book's input sites: out[i] = sum_(i, o, k) W'_k^T y[o].
 
 Rule books are built from sorted int64 site keys (`linear_key`, order (batch, theta, r, z)) with a sort
-(strided) or `torch.searchsorted` (submanifold); a conv is gather -> matmul per kernel offset -> index_add.
-Every output tensor keeps its rows sorted by `linear_key`. Input coordinates must be unique.
+(strided) or `torch.searchsorted` (submanifold); a conv is gather -> matmul per kernel offset -> index_add
+(`model.ops.sparse_conv.gather_mm_scatter`). Every output tensor keeps its rows sorted by `linear_key`. Input
+coordinates must be unique.
 """
 
 from __future__ import annotations
 
 import enum
 import itertools
-import logging
-import math
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from model.runtime import triton_available
-from model.sparse_tensor import BATCH, THETA, SparseTensor, Z, linear_key
-from model.sparse_tensor import R as R_AX
-
-log = logging.getLogger(__name__)
-_announced: set[bool] = set()  # which gather_mm_scatter paths have been logged
+from model.geometry.sparse_tensor import BATCH, THETA, Z, linear_key
+from model.geometry.sparse_tensor import R as R_AX
 
 
 class Plane(enum.Enum):
@@ -217,125 +213,3 @@ def build_subm_rulebook(
     sizes = [*counts, n, *counts[::-1]]
     ptr = (0, *itertools.accumulate(sizes))
     return Rulebook(in_idx, out_idx, ptr, kernel, plane, coords, shape, coords, shape, batch_size, centre)
-
-
-def gather_mm_scatter(
-    src: Tensor,
-    weight: Tensor,
-    src_idx: Tensor,
-    dst_idx: Tensor,
-    ptr: tuple[int, ...],
-    n_dst: int,
-    identity_offset: int | None = None,
-    fused: bool | None = None,
-) -> Tensor:
-    """dst[dst_idx[j]] += src[src_idx[j]] @ weight[k] for every pair j of offset k.
-
-    src (N_src, C_in), weight (KK, C_in, C_out), src_idx / dst_idx (P,) -> (n_dst, C_out). The pairs of
-    `identity_offset`, if given, must be (i, i) for every row (N_src == n_dst): that offset is one matmul.
-    Gathering per offset keeps each gathered block in cache for its matmul.
-
-    `fused` (None: wherever it can run, i.e. float32 on CUDA with Triton): one Triton launch for all offsets
-    (model/sparse_conv_triton.py) instead of this loop, its plain-torch twin. The log says which runs.
-    """
-    if fused is None:
-        fused = triton_available(src.device) and src.dtype == weight.dtype == torch.float32
-    fused = fused and src_idx.numel() > 0  # no pairs: nothing to launch
-    if fused not in _announced:
-        _announced.add(fused)
-        log.info("sparse conv gather-matmul-scatter: %s", "triton" if fused else "torch")
-    if fused:
-        from model.sparse_conv_triton import gather_mm_scatter_triton
-
-        return gather_mm_scatter_triton(src, weight, src_idx, dst_idx, ptr, n_dst, identity_offset)
-    ident = identity_offset
-    # products are cast back to src's dtype: under autocast they come out in bf16, the sums stay float32
-    out = src.new_zeros(n_dst, weight.shape[2]) if ident is None else (src @ weight[ident]).to(src.dtype)
-    for k in range(weight.shape[0]):
-        lo, hi = ptr[k], ptr[k + 1]
-        if hi > lo and k != ident:
-            out.index_add_(0, dst_idx[lo:hi], (src.index_select(0, src_idx[lo:hi]) @ weight[k]).to(src.dtype))
-    if src_idx.numel() == 0:  # keep the graph connected to the inputs and weights for empty inputs
-        out = out + src.sum() * weight.sum() * 0.0
-    return out
-
-
-def _init_params(weight: Tensor, bias: Tensor | None, fan_in: int) -> None:
-    """PyTorch's conv default (kaiming-uniform with a = sqrt(5)): U(-1/sqrt(fan_in), 1/sqrt(fan_in))."""
-    bound = 1.0 / math.sqrt(fan_in)
-    with torch.no_grad():
-        weight.uniform_(-bound, bound)
-        if bias is not None:
-            bias.uniform_(-bound, bound)
-
-
-class SparseConv2d(nn.Module):
-    """Sparse (or submanifold) 2D conv on `plane`; weight (K0*K1, in_ch, out_ch)."""
-
-    def __init__(
-        self,
-        in_ch: int,
-        out_ch: int,
-        kernel: int | tuple[int, int],
-        stride: tuple[int, int],
-        plane: Plane,
-        subm: bool = False,
-        bias: bool = False,
-    ) -> None:
-        super().__init__()
-        k = as_kernel(kernel)
-        if subm and (tuple(stride) != (1, 1) or k[0] % 2 == 0 or k[1] % 2 == 0):
-            raise ValueError(f"a submanifold conv needs stride (1, 1) and an odd kernel: {stride}, {kernel}")
-        self.kernel, self.plane, self.subm = k, plane, subm
-        self.stride = (int(stride[0]), int(stride[1]))
-        self.weight = nn.Parameter(torch.empty(k[0] * k[1], in_ch, out_ch))
-        self.bias = nn.Parameter(torch.empty(out_ch)) if bias else None
-        _init_params(self.weight, self.bias, k[0] * k[1] * in_ch)
-
-    def rulebook(self, x: SparseTensor) -> Rulebook:
-        if self.subm:
-            return build_subm_rulebook(x.coords, x.spatial_shape, x.batch_size, self.kernel, self.plane)
-        return build_strided_rulebook(
-            x.coords, x.spatial_shape, x.batch_size, self.kernel, self.stride, self.plane
-        )
-
-    def forward(self, x: SparseTensor, rulebook: Rulebook | None = None) -> tuple[SparseTensor, Rulebook]:
-        """x (N, in_ch) -> (M, out_ch) and the rule book; a given `rulebook` (built for x) is reused."""
-        rb = self.rulebook(x) if rulebook is None else rulebook
-        if rb.num_in != x.num_sites or rb.kernel != self.kernel or rb.plane != self.plane:
-            raise ValueError("rule book does not match this conv / input")
-        feats = gather_mm_scatter(
-            x.features, self.weight, rb.in_idx, rb.out_idx, rb.offset_ptr, rb.num_out, rb.identity_offset
-        )
-        if self.bias is not None:
-            feats = feats + self.bias
-        return SparseTensor(feats, rb.out_coords, rb.out_shape, rb.batch_size), rb
-
-
-class SparseInverseConv2d(nn.Module):
-    """Transposed conv onto a paired conv's input sites via its rule book reversed.
-
-    weight (K0*K1, in_ch, out_ch), with the paired conv's kernel.
-    """
-
-    def __init__(
-        self, in_ch: int, out_ch: int, kernel: int | tuple[int, int], plane: Plane, bias: bool = False
-    ) -> None:
-        super().__init__()
-        k = as_kernel(kernel)
-        self.kernel, self.plane = k, plane
-        self.weight = nn.Parameter(torch.empty(k[0] * k[1], in_ch, out_ch))
-        self.bias = nn.Parameter(torch.empty(out_ch)) if bias else None
-        _init_params(self.weight, self.bias, k[0] * k[1] * in_ch)
-
-    def forward(self, y: SparseTensor, rulebook: Rulebook) -> SparseTensor:
-        """y (M, in_ch) at the rule book's output sites -> (N, out_ch) at its input sites (same row order)."""
-        rb = rulebook
-        if rb.num_out != y.num_sites or rb.kernel != self.kernel or rb.plane != self.plane:
-            raise ValueError("rule book does not match this inverse conv / input")
-        feats = gather_mm_scatter(
-            y.features, self.weight, rb.out_idx, rb.in_idx, rb.offset_ptr, rb.num_in, rb.identity_offset
-        )
-        if self.bias is not None:
-            feats = feats + self.bias
-        return SparseTensor(feats, rb.in_coords, rb.in_shape, rb.batch_size)

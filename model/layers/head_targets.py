@@ -1,4 +1,4 @@
-"""CenterPoint training targets on the BEV grid of `model.head` (numpy, built in the data loader).
+"""CenterPoint training targets on the BEV grid of `model.layers.head` (numpy, built in the data loader).
 
 For each ground-truth box whose centre falls on the grid: a Gaussian peak on its class heatmap at the
 centre cell, and at that cell the regression targets the head predicts (offset in cells from the cell's

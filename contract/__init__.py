@@ -1,4 +1,5 @@
-"""The wire protocol shared by the server and its clients: sectors in, detections or errors out (msgpack).
+"""The wire contract between the server and its clients, owned by neither: sectors in, detections or errors
+out (msgpack), the limits, the error codes, the zenoh key space, the point fields and the media types.
 
 Arrays travel as maps {"dtype": "<f4", "shape": [N, C], "data": <raw little-endian bytes>}: never pickle,
 never lists of floats, never msgpack extension types. Decoding is strict and every failure is a
@@ -18,7 +19,12 @@ import msgpack
 import numpy as np
 
 POINT_DTYPE = "<f4"
-FIRST_FIELDS = ("x", "y", "z", "intensity")
+# the point columns a sector may carry, in the order the model reads them; each sector starts with the first 4
+POINT_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity", "elongation")
+REQUIRED_FIELDS: tuple[str, ...] = POINT_FIELDS[:4]
+MSGPACK = "application/msgpack"  # the sector and reply media type (HTTP Content-Type, zenoh encoding)
+MSGPACK_TYPES = (MSGPACK, "application/x-msgpack", "application/vnd.msgpack")  # accepted as the same
+JSON = "application/json"
 STREAM_ID_RE = re.compile(r"[A-Za-z0-9_.\-]+")
 INT64_MAX = 2**63 - 1
 SECTOR_KEYS = ("stream_id", "seq", "sector_index", "timestamp_ns", "points", "fields", "reset")
@@ -64,6 +70,44 @@ class ServiceError(Exception):
 
     def __repr__(self) -> str:
         return f"ServiceError({self.code.value!r}, {self.message!r}, field={self.field!r})"
+
+
+DEFAULT_KEY_PREFIX = "phim/v1"
+
+
+@dataclass(frozen=True)
+class KeySpace:
+    """The key expressions under one prefix."""
+
+    prefix: str = DEFAULT_KEY_PREFIX
+
+    @property
+    def sector_queryable(self) -> str:  # request/reply: get with a sector as payload
+        return f"{self.prefix}/streams/*/sector"
+
+    @property
+    def sector_subscriber(self) -> str:  # pub/sub: put a sector
+        return f"{self.prefix}/streams/*/sectors"
+
+    def sector(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/sector"
+
+    def sectors(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/sectors"
+
+    def detections(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/detections"
+
+    def errors(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/errors"
+
+    def worker(self, worker_id: str) -> str:
+        return f"{self.prefix}/workers/{worker_id}"
+
+    def stream_id_of(self, key: str) -> str:
+        """The stream-ID chunk of `{prefix}/streams/{id}/...` ('' if the key has another shape)."""
+        head = f"{self.prefix}/streams/"
+        return key[len(head) :].split("/", 1)[0] if key.startswith(head) else ""
 
 
 @dataclass(frozen=True)
@@ -203,9 +247,11 @@ def _fields(value: Any, limits: Limits) -> tuple[str, ...]:
     if len(value) > limits.max_fields:
         _fail(ErrorCode.TOO_LARGE, "fields", f"{len(value)} names; the limit is {limits.max_fields}")
     names = tuple(_str(v, f"fields[{i}]", limits) for i, v in enumerate(value))
-    if names[:4] != FIRST_FIELDS:
+    if names[:4] != REQUIRED_FIELDS:
         _fail(
-            ErrorCode.INVALID_FIELD, "fields", f"{list(names)}; expected to start with {list(FIRST_FIELDS)}"
+            ErrorCode.INVALID_FIELD,
+            "fields",
+            f"{list(names)}; expected to start with {list(REQUIRED_FIELDS)}",
         )
     if len(set(names)) != len(names) or not all(names):
         _fail(ErrorCode.INVALID_FIELD, "fields", f"{list(names)}; expected unique non-empty names")

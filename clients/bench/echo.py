@@ -1,4 +1,4 @@
-"""`python -m server.bench_echo`: the bare responder behind `phim bench server`'s transport floor.
+"""`python -m clients.bench.echo`: the bare responder behind `phim bench server`'s transport floor.
 
 No protocol, no validation, no stream table: the same transports (uvicorn + a Starlette route, a zenoh
 queryable read by a receiver thread) around a stand-in for the forward. A request is
@@ -6,7 +6,7 @@ queryable read by a receiver thread) around a stand-in for the forward. A reques
     header (HEADER: hold_ms float64, reply_bytes uint32) + the payload (the sector's bytes, unread)
 
 and its answer is `reply_bytes` bytes starting with the time the stand-in really held (float64 seconds).
-The stand-in keeps the CPU busy with torch matmuls for hold_ms on one thread of its own, the way the
+The stand-in keeps the CPU busy with numpy matmuls for hold_ms on one thread of its own, the way the
 device thread's forward does, so the machine is in the same state when the answer goes out. What a round
 trip costs beyond the hold is the floor any server on these transports pays on this machine.
 """
@@ -20,7 +20,7 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Annotated
 
-import torch
+import numpy as np
 import typer
 import zenoh
 from starlette.applications import Starlette
@@ -28,7 +28,8 @@ from starlette.requests import Request
 from starlette.responses import Response
 from starlette.routing import Route
 
-from server.zenoh_transport import ZenohConfig, open_session
+from clients.zenoh_session import open_session
+from phim.process import tune_malloc
 
 HEADER = struct.Struct("<dI")  # hold_ms, reply_bytes
 HELD = struct.Struct("<d")  # seconds held, at the start of the answer
@@ -41,16 +42,16 @@ def request_header(hold_ms: float, reply_bytes: int) -> bytes:
 
 
 class Holder:
-    """Busy for hold_ms on its own thread (torch's OpenMP team lives there only, as in the worker)."""
+    """Busy for hold_ms on its own thread, as the worker's device thread is during a forward."""
 
     def __init__(self) -> None:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="echo-hold")
-        self._a: torch.Tensor = self._pool.submit(torch.rand, 192, 192).result()  # (192, 192)
+        self._a = np.random.default_rng(0).random((192, 192), dtype=np.float32)  # (192, 192)
 
     def hold(self, hold_ms: float) -> float:
         t0 = time.perf_counter()
         while (time.perf_counter() - t0) * 1e3 < hold_ms:
-            self._a = (self._a @ self._a).clamp_(0.0, 1.0)
+            self._a = np.clip(self._a @ self._a, 0.0, 1.0)
         return time.perf_counter() - t0
 
     def answer(self, body: bytes | memoryview) -> bytes:
@@ -75,7 +76,7 @@ def http_app(holder: Holder) -> Starlette:
 
 def serve_zenoh(holder: Holder, listen: str) -> tuple[zenoh.Session, zenoh.Queryable]:
     """A queryable on ECHO_KEY; a receiver thread hands each query to the holder, then replies."""
-    session = open_session(ZenohConfig(mode="peer", listen=(listen,)))
+    session = open_session((), mode="peer", listen=(listen,))
     queryable = session.declare_queryable(ECHO_KEY, zenoh.handlers.FifoChannel(16))
 
     def receive() -> None:
@@ -97,14 +98,10 @@ def serve_zenoh(holder: Holder, listen: str) -> tuple[zenoh.Session, zenoh.Query
 def main(
     port: Annotated[int, typer.Option()] = 18090,
     zenoh_listen: Annotated[str, typer.Option()] = "tcp/127.0.0.1:17490",
-    threads: Annotated[int, typer.Option(help="torch CPU threads of the stand-in forward")] = 2,
 ) -> None:
     import uvicorn
 
-    from model.runtime import tune_malloc
-
     tune_malloc()
-    torch.set_num_threads(threads)
     holder = Holder()
     session_and_queryable = serve_zenoh(holder, zenoh_listen)  # live as long as the process
     uvicorn.run(http_app(holder), host="127.0.0.1", port=port, log_level="warning", ws="none")

@@ -1,4 +1,4 @@
-"""Selective scan (Mamba's S6 recurrence) over packed variable-length sequences.
+"""Selective scan (Mamba's S6 recurrence) over packed variable-length sequences: the plain-torch twins.
 
 For every sequence of the pack (tokens concatenated along dim 0, described by `cu_seqlens`):
 
@@ -9,7 +9,8 @@ with h_{-1} = h0 of that sequence (zeros when h0 is None). No D skip and no gati
 (D, 1) when the N states of a channel share one decay (`MambaConfig.shared_decay`): then exp(delta_t * A) is
 computed once per channel and broadcast over N.
 
-Implementations (`ScanImpl`; AUTO picks TRITON on CUDA where Triton is installed, else CHUNKED):
+Implementations (`ScanImpl`; `model.ops.scan.selective_scan` dispatches, AUTO picks TRITON on CUDA where
+Triton is installed, else CHUNKED):
 - `selective_scan_ref`: a plain sequential loop; slow, the ground truth.
 - `selective_scan_chunked`: every sequence is cut into chunks of `chunk_size` tokens; all chunks are laid
   out position-major without padding (chunks sorted by length, like a PackedSequence); the chunks that are
@@ -18,23 +19,16 @@ Implementations (`ScanImpl`; AUTO picks TRITON on CUDA where Triton is installed
   chunk index (c_{j+1} = exp(A * sum(delta over chunk j)) * c_j + local_final_j, all sequences at once);
   then all chunks are scanned in parallel from their entering states, which gives the outputs and the
   final states. Only exponentials of non-positive numbers appear.
-- `model.scan_triton.selective_scan_triton` (CUDA): the same chunked algorithm as three Triton kernels.
+- `model.ops.scan_triton.selective_scan_triton` (CUDA): the same chunked algorithm as three Triton kernels.
 """
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
-
-from model.config import ScanImpl
-from model.runtime import triton_available
-
-log = logging.getLogger(__name__)
-_announced: set[ScanImpl] = set()
 
 
 def _compute_dtype(*tensors: Tensor) -> torch.dtype:
@@ -42,7 +36,7 @@ def _compute_dtype(*tensors: Tensor) -> torch.dtype:
     return torch.float64 if any(t.dtype == torch.float64 for t in tensors) else torch.float32
 
 
-def _check_inputs(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, cu: Tensor, h0: Tensor | None):
+def check_inputs(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, cu: Tensor, h0: Tensor | None):
     T, D = u.shape
     N = B.shape[1] if B.dim() == 2 else -1
     if delta.shape != (T, D) or A.shape not in ((D, N), (D, 1)) or B.shape != (T, N) or C.shape != (T, N):
@@ -71,7 +65,7 @@ def selective_scan_ref(
 
     Returns y (T, D) in u's dtype and the final states (S, D, N) (float32, float64 for float64 inputs).
     """
-    _check_inputs(u, delta, A, B, C, cu_seqlens, h0)
+    check_inputs(u, delta, A, B, C, cu_seqlens, h0)
     cd = _compute_dtype(u, delta, A, B, C)
     bounds = cu_seqlens.tolist()
     _check_cu(np.asarray(bounds), u.shape[0])
@@ -231,7 +225,7 @@ def selective_scan_chunked(
     chunk_size: int = 32,
 ) -> tuple[Tensor, Tensor]:
     """Chunked parallel scan; same contract as `selective_scan_ref`."""
-    _check_inputs(u, delta, A, B, C, cu_seqlens, h0)
+    check_inputs(u, delta, A, B, C, cu_seqlens, h0)
     if chunk_size < 1:
         raise ValueError("chunk_size must be >= 1")
     T, D = u.shape
@@ -269,46 +263,3 @@ def selective_scan_chunked(
     y = (H * Cp[:, :, None]).sum(1)  # (T, D) packed (a batch of (1, N) @ (N, D) matmuls is slower on CPU)
     final = h_init.index_copy(0, lay.last_seq, H.index_select(0, lay.last_pos).transpose(1, 2))  # (S, D, N)
     return y.index_select(0, lay.token_to_packed).to(u.dtype), final
-
-
-def scan_available(impl: ScanImpl, device: torch.device) -> bool:
-    """Whether `impl` can run on `device`: TRITON needs a CUDA device and the triton package."""
-    return triton_available(device) if impl is ScanImpl.TRITON else True
-
-
-def resolve_scan(impl: ScanImpl, device: torch.device) -> ScanImpl:
-    """AUTO -> TRITON where it is available, else CHUNKED; any other choice stays as it is."""
-    if impl is not ScanImpl.AUTO:
-        return impl
-    return ScanImpl.TRITON if scan_available(ScanImpl.TRITON, device) else ScanImpl.CHUNKED
-
-
-def selective_scan(
-    u: Tensor,
-    delta: Tensor,
-    A: Tensor,
-    B: Tensor,
-    C: Tensor,
-    cu_seqlens: Tensor,
-    h0: Tensor | None = None,
-    impl: ScanImpl = ScanImpl.AUTO,
-    chunk_size: int = 32,
-) -> tuple[Tensor, Tensor]:
-    """Dispatch to the implementation `impl`; see the module docstring for the contract."""
-    impl = resolve_scan(impl, u.device)
-    if not scan_available(impl, u.device):
-        raise RuntimeError(
-            f"selective scan implementation {impl.value!r} is not available on {u.device} "
-            "(triton needs a CUDA device, the triton package and a C compiler: gcc, clang or $CC)"
-        )
-    if impl not in _announced:
-        _announced.add(impl)
-        log.info("selective scan implementation: %s", impl.value)
-    if impl is ScanImpl.REFERENCE:
-        return selective_scan_ref(u, delta, A, B, C, cu_seqlens, h0)
-    if impl is ScanImpl.CHUNKED:
-        return selective_scan_chunked(u, delta, A, B, C, cu_seqlens, h0, chunk_size)
-    from model.scan_triton import selective_scan_triton
-
-    _check_inputs(u, delta, A, B, C, cu_seqlens, h0)
-    return selective_scan_triton(u, delta, A, B, C, cu_seqlens, h0, chunk_size)

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from model.detector import PHiM
-from model.scan import resolve_scan
+from model.ops.scan import resolve_scan
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 
@@ -20,7 +20,7 @@ from model.stream import StreamingDetector
 class ModelBench:
     config: str
     device: str
-    scan: str  # the selective-scan implementation that ran (model/scan.py)
+    scan: str  # the selective-scan implementation that ran (model/ops/scan.py)
     threads: int
     batch: int  # streams per forward
     sectors_per_turn: int

@@ -26,8 +26,8 @@ import torch
 from torch import Tensor, nn
 
 from model.config import BEVConfig, PolarGridConfig
-from model.sparse_tensor import BATCH, THETA, SparseTensor
-from model.sparse_tensor import R as R_AX
+from model.geometry.sparse_tensor import BATCH, THETA, SparseTensor
+from model.geometry.sparse_tensor import R as R_AX
 
 
 def _column_centre_cells(grid: PolarGridConfig, bev: BEVConfig) -> tuple[Tensor, Tensor]:

@@ -11,15 +11,11 @@ import torch
 import typer
 
 from model.config import CONFIGS, ScanImpl, get_config
-from model.runtime import pick_device, tune_malloc
+from model.data.samples import KITTI_000000
+from model.data.synthetic import synthetic_turn
+from model.device import pick_device
 from model.sectors import load_kitti_bin
-from model.synthetic import synthetic_turn
-
-REPO = Path(__file__).resolve().parents[1]
-KITTI_000000 = REPO.parent / "shared" / "data" / "kitti_object" / "velodyne" / "000000.bin"
-
-model_app = typer.Typer(help="Inspect model configs.", no_args_is_help=True)
-bench_app = typer.Typer(help="Benchmarks (a table or JSON at the end).", no_args_is_help=True)
+from phim.process import tune_malloc
 
 ConfigOpt = Annotated[str, typer.Option("--config", help=f"model config: {', '.join(CONFIGS)}")]
 PointsOpt = Annotated[
@@ -33,17 +29,16 @@ def _load_turn(points: Path | None, fallback_kitti: bool) -> tuple[torch.Tensor,
         return load_kitti_bin(str(points)), str(points)
     if fallback_kitti and KITTI_000000.is_file():
         return load_kitti_bin(str(KITTI_000000)), str(KITTI_000000)
-    return synthetic_turn(seed=0), "synthetic_turn(seed=0)"
+    return torch.from_numpy(synthetic_turn(seed=0)), "synthetic_turn(seed=0)"
 
 
-@model_app.command("info")
 def info(
     config: ConfigOpt = "paper",
     points: PointsOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
 ) -> None:
     """Parameter count and measured GFLOPs of a config (FLOPs counted on a real forward)."""
-    from model.info import model_info
+    from model.tools.info import model_info
 
     tune_malloc()
     turn, source = _load_turn(points, fallback_kitti=False)
@@ -56,7 +51,6 @@ def info(
         typer.echo(f"{key:>24}  {value}")
 
 
-@bench_app.command("model")
 def bench_model_cmd(
     config: ConfigOpt = "tiny",
     points: PointsOpt = None,
@@ -71,9 +65,9 @@ def bench_model_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
 ) -> None:
     """Time one sector at a time of a scan, with the sector buffer loaded."""
-    from model.bench import bench_model
     from model.checkpoint import checkpoint_path, load_checkpoint
     from model.detector import PHiM
+    from model.tools.bench import bench_model
 
     logging.basicConfig(level=logging.WARNING)
     tune_malloc()
@@ -98,7 +92,6 @@ def bench_model_cmd(
         typer.echo(f"| {key} | {result[key]} |")
 
 
-@bench_app.command("ops")
 def bench_ops_cmd(
     config: ConfigOpt = "paper",
     points: PointsOpt = None,
@@ -112,7 +105,7 @@ def bench_ops_cmd(
     """Torch ops (kernel launches on a GPU), views and host syncs of one streaming step, by model function."""
     from model.checkpoint import checkpoint_path, load_checkpoint
     from model.detector import PHiM
-    from model.op_count import count_ops
+    from model.tools.op_count import count_ops
 
     logging.basicConfig(level=logging.WARNING)
     tune_malloc()
@@ -132,10 +125,3 @@ def bench_ops_cmd(
     typer.echo(f"| all but the selective scan | **{report.ops_outside_scan}** | | |")
     if report.cuda_kernels is not None:
         typer.echo(f"| CUDA kernels launched | {report.cuda_kernels} | | |")
-
-
-if __name__ == "__main__":  # `python -m model.cli`: these commands without the server's packages (GPU hosts)
-    root = typer.Typer(no_args_is_help=True, add_completion=False)
-    root.add_typer(model_app, name="model")
-    root.add_typer(bench_app, name="bench")
-    root()

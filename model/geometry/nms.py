@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from model.boxes import iou_bev_upper_bound, near_pairs, rotated_iou_bev_aligned
+from model.geometry.boxes import iou_bev_upper_bound, near_pairs, rotated_iou_bev_aligned
 
 _BOUND_SLACK = 1e-4  # pairs within this of the threshold by the upper bound get the exact IoU
 _PREFIX = 2  # first try NMS on the best _PREFIX x max_out candidates only

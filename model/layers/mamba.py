@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from model.config import MambaConfig
-from model.scan import selective_scan
+from model.ops.scan import selective_scan
 
 
 @dataclass

@@ -10,7 +10,7 @@ sends the sectors of one scan in order on one stream, one request in flight, and
 so the overhead of each request is measured against its own forward, whatever the load on the machine.
 
 The transport floor: after each request the same client stack sends a payload of the sector's size to a
-bare responder (`server.bench_echo`, its own process) that keeps the CPU busy for that request's model
+bare responder (`clients.bench.echo`, its own process) that keeps the CPU busy for that request's model
 time and answers with as many bytes as the reply had. What that round trip costs beyond the hold is what
 the transport itself costs on this machine; overhead minus floor is what this server's code adds.
 """
@@ -36,13 +36,15 @@ import typer
 import zenoh
 
 from clients.base import DetectorClient, sector_message
+from clients.bench.echo import ECHO_KEY, ECHO_PATH, HELD, request_header
 from clients.connect import ConnectConfig, Transport, make_client
 from clients.http_conn import ConnectionPool
 from clients.sectorizer import split_scan
+from clients.zenoh_session import open_session
+from contract import encode_reply, encode_sector
 from model.data.readers import read_scan
-from server.bench_echo import ECHO_KEY, ECHO_PATH, HELD, request_header
-from server.protocol import encode_reply, encode_sector
-from server.zenoh_transport import ZenohConfig, open_session
+from model.data.samples import KITTI_000000
+from phim.process import tune_malloc
 
 READY_TIMEOUT_S = 300.0
 
@@ -72,7 +74,7 @@ def _pct(values: list[float], q: float) -> float:
 
 
 class Floor:
-    """Bare round trips over one transport to `server.bench_echo`: send `body`, get the seconds it held."""
+    """Bare round trips over one transport to `clients.bench.echo`: send `body`, get the seconds it held."""
 
     def __init__(self, transport: Transport, url: str, zenoh_endpoint: str):
         self._pool: ConnectionPool | None = None
@@ -80,7 +82,7 @@ class Floor:
         if transport is Transport.HTTP:
             self._pool = ConnectionPool(url, timeout_s=10.0, connect_timeout_s=5.0)
         else:
-            self._session = open_session(ZenohConfig(mode="client", listen=(), connect=(zenoh_endpoint,)))
+            self._session = open_session((zenoh_endpoint,))
 
     def round_trip(self, body: bytes) -> float:
         if self._pool is not None:
@@ -175,19 +177,19 @@ def spawned(cmd: list[str], ready_url: str) -> Iterator[None]:
 def spawned_server(threads: int, extra: list[str]) -> Iterator[ConnectConfig]:
     """`phim serve` in a subprocess on free loopback ports; yields how to reach it."""
     http, endpoint = free_port(), f"tcp/127.0.0.1:{free_port()}"
-    cmd = [sys.executable, "-m", "server.cli", "serve", "--port", str(http), "--zenoh-listen", endpoint]
+    cmd = [sys.executable, "-m", "phim", "serve", "--port", str(http), "--zenoh-listen", endpoint]
     url = f"http://127.0.0.1:{http}"
     with spawned([*cmd, "--threads", str(threads), *extra], f"{url}/health/ready"):
         yield ConnectConfig(url=url, zenoh_connect=(endpoint,))
 
 
 @contextlib.contextmanager
-def spawned_echo(threads: int) -> Iterator[ConnectConfig]:
-    """`server.bench_echo` (the transport floor's responder) on free loopback ports."""
+def spawned_echo() -> Iterator[ConnectConfig]:
+    """`clients.bench.echo` (the transport floor's responder) on free loopback ports."""
     http, endpoint = free_port(), f"tcp/127.0.0.1:{free_port()}"
-    cmd = [sys.executable, "-m", "server.bench_echo", "--port", str(http), "--zenoh-listen", endpoint]
+    cmd = [sys.executable, "-m", "clients.bench.echo", "--port", str(http), "--zenoh-listen", endpoint]
     url = f"http://127.0.0.1:{http}"
-    with spawned([*cmd, "--threads", str(threads)], f"{url}/ready"):
+    with spawned(cmd, f"{url}/ready"):
         yield ConnectConfig(url=url, zenoh_connect=(endpoint,))
 
 
@@ -273,9 +275,6 @@ def bench_server_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
 ) -> None:
     """End-to-end latency per sector beside the model's own time: the server's overhead per transport."""
-    from model.cli import KITTI_000000
-    from model.runtime import tune_malloc
-
     tune_malloc()  # the client side too: sector-sized buffers stay on the heap
     scan = points or KITTI_000000
     if not scan.is_file():
@@ -283,7 +282,7 @@ def bench_server_cmd(
     sectors = load_sectors(scan)
     chosen = transport or [Transport.HTTP, Transport.ZENOH]
     with contextlib.ExitStack() as stack:
-        echo = stack.enter_context(spawned_echo(threads)) if floor else None
+        echo = stack.enter_context(spawned_echo()) if floor else None
         if url:
             connect = ConnectConfig(url=url, zenoh_connect=(zenoh_connect,))
         else:

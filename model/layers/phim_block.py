@@ -19,9 +19,9 @@ import torch
 from torch import Tensor, nn
 
 from model.config import BackboneConfig
-from model.decomposed import DecomposedDown, DecomposedUp, DownContext
-from model.mamba import Mamba, MambaState, Packing
-from model.sparse_tensor import BATCH, THETA, SparseTensor
+from model.geometry.sparse_tensor import BATCH, THETA, SparseTensor
+from model.layers.decomposed import DecomposedDown, DecomposedUp, DownContext
+from model.layers.mamba import Mamba, MambaState, Packing
 
 
 @dataclass(frozen=True)

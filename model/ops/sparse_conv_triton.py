@@ -1,5 +1,5 @@
 """Gather -> matmul -> scatter of a sparse conv in one Triton launch (CUDA): the fast twin of
-`sparse_conv.gather_mm_scatter` (fused=False).
+`sparse_conv_torch.gather_mm_scatter_torch`.
 
 The rule book's pairs are grouped by kernel offset. They are cut into blocks of BLOCK_P pairs that never
 straddle two offsets (a table made on the host from the offsets' pair counts, which the host already
@@ -19,7 +19,8 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
-from model.runtime import grads_by_recompute
+from model.ops.sparse_conv_torch import gather_mm_scatter_torch
+from model.ops.triton_support import grads_by_recompute
 
 BLOCK_P = 64  # pairs per program
 
@@ -96,14 +97,10 @@ class TritonGatherMMScatter(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_out):  # type: ignore[override]
-        from model.sparse_conv import gather_mm_scatter
-
         src, weight, src_idx, dst_idx = ctx.saved_tensors
 
         def twin(src, weight):
-            return gather_mm_scatter(
-                src, weight, src_idx, dst_idx, ctx.ptr, ctx.n_dst, ctx.ident, fused=False
-            )
+            return gather_mm_scatter_torch(src, weight, src_idx, dst_idx, ctx.ptr, ctx.n_dst, ctx.ident)
 
         g_src, g_w = grads_by_recompute(twin, (src, weight), g_out)
         return g_src, g_w, None, None, None, None, None
@@ -112,5 +109,5 @@ class TritonGatherMMScatter(torch.autograd.Function):
 def gather_mm_scatter_triton(
     src: Tensor, weight: Tensor, src_idx: Tensor, dst_idx: Tensor, ptr, n_dst: int, ident: int | None
 ) -> Tensor:
-    """Same contract as `sparse_conv.gather_mm_scatter` (fused=False), for float32 CUDA tensors."""
+    """Same contract as `sparse_conv_torch.gather_mm_scatter_torch`, for float32 CUDA tensors."""
     return TritonGatherMMScatter.apply(src, weight, src_idx, dst_idx, ptr, n_dst, ident)

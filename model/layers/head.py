@@ -22,11 +22,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from model.boxes import Detections
 from model.config import BEVConfig, HeadConfig, HeadingCode
-from model.nms import class_nms
+from model.geometry.boxes import Detections
+from model.geometry.nms import class_nms
 
 HEATMAP_PRIOR_BIAS = -2.19  # log(0.1 / 0.9): initial heatmap probability about 0.1, as CenterPoint
+MAX_LOG_DIM = 4.0  # exp(4) = 55 m: keeps early, untrained dims finite (decoding at target cells)
 
 
 @dataclass
@@ -220,3 +221,30 @@ def decode(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> list[Detections]
         keep = class_nms(boxes, scores, labels, cfg.nms_iou, cfg.pre_nms_top_k, cfg.post_nms_top_k)
         result.append(Detections(boxes[keep], scores[keep], labels[keep]))
     return result
+
+
+# ---- reading the maps at given cells (the training loss and `phim diagnose`) ---------------------------
+
+
+def gather_cells(maps: Tensor, flat: Tensor) -> Tensor:
+    """maps (B, C, H, W), flat (T,) indices into B * H * W -> (T, C)."""
+    b, c, h, w = maps.shape
+    return maps.permute(0, 2, 3, 1).reshape(b * h * w, c).index_select(0, flat).float()
+
+
+def regression_at(out: HeadOutput, flat: Tensor) -> Tensor:
+    """The regression channels (offset, z, log dims, rot) at flat cells (T,) -> (T, 6 + R)."""
+    return gather_cells(torch.cat([out.offset, out.z, out.log_dim, out.rot], 1), flat)
+
+
+def decoded_boxes(
+    reg: Tensor, flat: Tensor, width: int, height: int, bev: BEVConfig, heading: HeadingCode
+) -> Tensor:
+    """reg (T, 6 + R) predicted at flat cells (T,) -> (T, 7) boxes, decoded as `decode` does."""
+    pix = flat % (width * height)
+    row, col = pix // width, pix % width
+    x = bev.x_min + (col.float() + reg[:, 0]) * bev.cell
+    y = bev.y_min + (row.float() + reg[:, 1]) * bev.cell
+    dims = torch.exp(reg[:, 3:6].clamp(max=MAX_LOG_DIM))
+    yaw = decode_yaw(reg[:, 6:].unbind(1), heading)
+    return torch.cat([torch.stack([x, y, reg[:, 2]], 1), dims, yaw[:, None]], 1)

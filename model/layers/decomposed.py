@@ -25,8 +25,9 @@ from dataclasses import dataclass
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from model.sparse_conv import Plane, Rulebook, SparseConv2d, SparseInverseConv2d
-from model.sparse_tensor import SparseTensor
+from model.geometry.rulebook import Plane, Rulebook
+from model.geometry.sparse_tensor import SparseTensor
+from model.layers.sparse_conv import SparseConv2d, SparseInverseConv2d
 
 BN_EPS = 1e-3
 BN_MOMENTUM = 0.01

@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from model.config import PolarGridConfig, VFEConfig
-from model.sparse_tensor import SparseTensor
+from model.geometry.sparse_tensor import SparseTensor
 
 BN_EPS, BN_MOMENTUM = 1e-3, 0.01
 EXTRA_FEATURES = 9  # r (1) + centre offsets (3) + sin, cos (2) + cluster offsets (3)

@@ -10,7 +10,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from model.config import PHiMConfig
 from model.detector import PHiM
-from model.phim_block import StreamLayout
+from model.layers.phim_block import StreamLayout
 from model.sectors import split_turn
 
 

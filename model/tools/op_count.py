@@ -18,7 +18,7 @@ from torch import Tensor
 from torch.profiler import ProfilerActivity, profile
 
 from model.detector import PHiM
-from model.scan import resolve_scan
+from model.ops.scan import resolve_scan
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 
@@ -29,7 +29,7 @@ split_with_sizes chunk unbind alias detach resolve_conj resolve_neg lift_fresh""
 _SYNCS = "nonzero unique_consecutive _unique2 unique_dim is_nonzero equal _local_scalar_dense"
 VIEW_OPS = frozenset(f"aten::{n}" for n in _VIEWS.split())
 SYNC_OPS = frozenset(f"aten::{n}" for n in _SYNCS.split())
-SCAN_FILES = ("model/scan.py", "model/scan_triton.py")  # the selective scan: one fused path on CUDA
+SCAN_FILES = ("model/ops/scan_torch.py", "model/ops/scan_triton.py")  # the scan: one fused path on CUDA
 _FRAME = re.compile(r"(model/[\w/]+\.py)\(\d+\): (\w+)")
 
 

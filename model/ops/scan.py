@@ -1,0 +1,63 @@
+"""Selective scan dispatch: one entry point over the implementations of `ScanImpl`.
+
+The plain-torch twins (reference loop, chunked) live in `model.ops.scan_torch`, the Triton kernels in
+`model.ops.scan_triton` (CUDA only, imported on first use); every fast path is held to the reference by
+tests/test_scan.py and tests/test_cuda.py. The contract is `scan_torch`'s module docstring.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from torch import Tensor
+
+from model.config import ScanImpl
+from model.ops.scan_torch import check_inputs, selective_scan_chunked, selective_scan_ref
+from model.ops.triton_support import triton_available
+
+log = logging.getLogger(__name__)
+_announced: set[ScanImpl] = set()
+
+
+def scan_available(impl: ScanImpl, device: torch.device) -> bool:
+    """Whether `impl` can run on `device`: TRITON needs a CUDA device and the triton package."""
+    return triton_available(device) if impl is ScanImpl.TRITON else True
+
+
+def resolve_scan(impl: ScanImpl, device: torch.device) -> ScanImpl:
+    """AUTO -> TRITON where it is available, else CHUNKED; any other choice stays as it is."""
+    if impl is not ScanImpl.AUTO:
+        return impl
+    return ScanImpl.TRITON if scan_available(ScanImpl.TRITON, device) else ScanImpl.CHUNKED
+
+
+def selective_scan(
+    u: Tensor,
+    delta: Tensor,
+    A: Tensor,
+    B: Tensor,
+    C: Tensor,
+    cu_seqlens: Tensor,
+    h0: Tensor | None = None,
+    impl: ScanImpl = ScanImpl.AUTO,
+    chunk_size: int = 32,
+) -> tuple[Tensor, Tensor]:
+    """Dispatch to the implementation `impl`; see the module docstring for the contract."""
+    impl = resolve_scan(impl, u.device)
+    if not scan_available(impl, u.device):
+        raise RuntimeError(
+            f"selective scan implementation {impl.value!r} is not available on {u.device} "
+            "(triton needs a CUDA device, the triton package and a C compiler: gcc, clang or $CC)"
+        )
+    if impl not in _announced:
+        _announced.add(impl)
+        log.info("selective scan implementation: %s", impl.value)
+    if impl is ScanImpl.REFERENCE:
+        return selective_scan_ref(u, delta, A, B, C, cu_seqlens, h0)
+    if impl is ScanImpl.CHUNKED:
+        return selective_scan_chunked(u, delta, A, B, C, cu_seqlens, h0, chunk_size)
+    from model.ops.scan_triton import selective_scan_triton
+
+    check_inputs(u, delta, A, B, C, cu_seqlens, h0)
+    return selective_scan_triton(u, delta, A, B, C, cu_seqlens, h0, chunk_size)

@@ -1,0 +1,1 @@
+"""The `phim` command line (phim/cli.py) and what its entry point sets up for every command."""
