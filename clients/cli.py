@@ -1,41 +1,25 @@
-"""`phim loadtest` and `phim replay` (typer commands, loaded by the `phim` command, phim/cli.py)."""
+"""`phim loadtest` and `phim replay` (click commands, loaded by the `phim` command, phim/cli.py).
+
+Exit codes: 0 the run completed (and held its thresholds), 1 it failed (a client error, a threshold broken),
+2 usage (bad options, missing input)."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import Any
 
-import typer
+import click
 
-from clients.connect import ConnectConfig, Transport
 from clients.loadtest.config import Mode
+from clients.options import connect_config, connection_options, every_option
 from model.data.samples import KITTI_VELODYNE
+from phim.options import EnumValue, json_option
 
-TransportOpt = Annotated[Transport, typer.Option(help="http or zenoh")]
-UrlOpt = Annotated[str, typer.Option(help="server HTTP address (over zenoh: model info, ending streams)")]
-ConnectOpt = Annotated[str, typer.Option(help="zenoh endpoints to connect to, comma-separated")]
-ZModeOpt = Annotated[str, typer.Option(help="zenoh session mode: client or peer")]
-ZFileOpt = Annotated[Path | None, typer.Option(help="zenoh JSON5 config file (TLS, ...)")]
-TimeoutOpt = Annotated[float, typer.Option(help="per-request timeout (s)")]
-
-
-def connect_config(
-    transport: Transport,
-    url: str,
-    zenoh_connect: str,
-    zenoh_mode: str,
-    zenoh_config: Path | None,
-    timeout: float,
-) -> ConnectConfig:
-    return ConnectConfig(
-        transport=transport,
-        url=url,
-        zenoh_connect=tuple(e.strip() for e in zenoh_connect.split(",") if e.strip()),
-        zenoh_mode=zenoh_mode,
-        zenoh_config_file=None if zenoh_config is None else str(zenoh_config),
-        timeout_s=timeout,
-    )
+NewFile = click.Path(dir_okay=False, path_type=Path)
+Folder = click.Path(file_okay=False, path_type=Path)
 
 
 def _vehicles(vehicles: int, sweep: str | None) -> tuple[int, ...]:
@@ -44,11 +28,11 @@ def _vehicles(vehicles: int, sweep: str | None) -> tuple[int, ...]:
     try:
         steps = tuple(int(v) for v in sweep.split(",") if v.strip())
     except ValueError:
-        raise typer.BadParameter(
-            f"--sweep {sweep!r}: expected comma-separated vehicle counts, e.g. 1,2,4,8"
+        raise click.BadParameter(
+            f"{sweep!r}: expected comma-separated vehicle counts, e.g. 1,2,4,8", param_hint="--sweep"
         ) from None
     if not steps or min(steps) < 1:
-        raise typer.BadParameter(f"--sweep {sweep!r}: expected positive vehicle counts")
+        raise click.BadParameter(f"{sweep!r}: expected positive vehicle counts", param_hint="--sweep")
     return steps
 
 
@@ -60,46 +44,78 @@ def _data(data: Path | None, synthetic: bool) -> Path | None:
     return KITTI_VELODYNE if KITTI_VELODYNE.is_dir() else None
 
 
+@click.command()
+@connection_options
+@click.option("--vehicles", type=click.IntRange(1), default=1, show_default=True, help="Simulated vehicles.")
+@click.option("--sweep", help="Vehicle counts to step through, e.g. 1,2,4,8 (instead of --vehicles).")
+@click.option(
+    "--mode",
+    type=EnumValue(Mode),
+    default=Mode.OPEN.value,
+    show_default=True,
+    help="open: at sensor rate, latency from each scheduled time; closed: send when answered.",
+)
+@click.option(
+    "--duration", type=click.FloatRange(0.1), default=10.0, show_default=True, help="Seconds per step."
+)
+@click.option(
+    "--turns-per-s", type=click.FloatRange(0.01), default=10.0, show_default=True, help="Sensor rate."
+)
+@click.option("--sectors-per-turn", type=click.IntRange(1), help="[default: the served model's]")
+@click.option(
+    "--data",
+    type=click.Path(exists=True, path_type=Path),
+    help="A folder of scans (KITTI .bin, nuScenes .pcd.bin, .npz) [default: the KITTI samples if present].",
+)
+@click.option("--synthetic", is_flag=True, help="Synthetic turns instead of recorded scans.")
+@every_option
+@click.option(
+    "--max-scans", type=click.IntRange(1), default=20, show_default=True, help="Scans read from --data."
+)
+@click.option(
+    "--drain-timeout", type=click.FloatRange(0), default=10.0, show_default=True, help="Wait for replies (s)."
+)
+@click.option(
+    "--p99-bound-ms", type=float, default=25.0, show_default=True, help="A step holds when p99 <= this."
+)
+@click.option("--keep-going", is_flag=True, help="Sweep on after a step that does not hold.")
+@json_option
+@click.option("--out", type=NewFile, help="Write the JSON report to this file.")
+@click.option("--csv", "csv_path", type=NewFile, help="Write the CSV report to this file.")
+@click.option("--plots", type=Folder, help="Write PNG plots into this folder.")
+@click.option("--progress/--no-progress", default=True, show_default=True, help="Live progress on stderr.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Vehicle start offsets and scan choice.")
 def loadtest(
-    transport: TransportOpt = Transport.HTTP,
-    url: UrlOpt = "http://127.0.0.1:8080",
-    zenoh_connect: ConnectOpt = "tcp/127.0.0.1:7447",
-    zenoh_mode: ZModeOpt = "client",
-    zenoh_config: ZFileOpt = None,
-    vehicles: Annotated[int, typer.Option(min=1, help="simulated vehicles (streams)")] = 1,
-    sweep: Annotated[str | None, typer.Option(help="vehicle counts to step through, e.g. 1,2,4,8")] = None,
-    mode: Annotated[
-        Mode,
-        typer.Option(help="open: at sensor rate, latency from scheduled time; closed: send when answered"),
-    ] = Mode.OPEN,
-    duration: Annotated[float, typer.Option(min=0.1, help="seconds of sending per step")] = 10.0,
-    turns_per_s: Annotated[float, typer.Option(min=0.01, help="sensor turns per second per vehicle")] = 10.0,
-    sectors_per_turn: Annotated[int | None, typer.Option(help="default: the served model's")] = None,
-    data: Annotated[
-        Path | None, typer.Option(help=f"folder of scans [default: {KITTI_VELODYNE} if present]")
-    ] = None,
-    synthetic: Annotated[bool, typer.Option(help="synthetic turns instead of recorded scans")] = False,
-    every: Annotated[int, typer.Option(min=1, help="keep every n-th point")] = 1,
-    max_scans: Annotated[int, typer.Option(min=1, help="scans read from --data")] = 20,
-    timeout: TimeoutOpt = 10.0,
-    drain_timeout: Annotated[float, typer.Option(help="wait for replies after the last send (s)")] = 10.0,
-    p99_bound_ms: Annotated[float, typer.Option(help="a step holds when p99 <= this")] = 25.0,
-    keep_going: Annotated[bool, typer.Option(help="sweep on after a step that does not hold")] = False,
-    json_path: Annotated[Path | None, typer.Option("--json", help="write the JSON report here")] = None,
-    csv_path: Annotated[Path | None, typer.Option("--csv", help="write the CSV report here")] = None,
-    plots: Annotated[Path | None, typer.Option(help="write PNG plots into this folder")] = None,
-    progress: Annotated[bool, typer.Option(help="live progress on stderr")] = True,
-    seed: int = 0,
+    vehicles: int,
+    sweep: str | None,
+    mode: Mode,
+    duration: float,
+    turns_per_s: float,
+    sectors_per_turn: int | None,
+    data: Path | None,
+    synthetic: bool,
+    every: int,
+    max_scans: int,
+    drain_timeout: float,
+    p99_bound_ms: float,
+    keep_going: bool,
+    as_json: bool,
+    out: Path | None,
+    csv_path: Path | None,
+    plots: Path | None,
+    progress: bool,
+    seed: int,
+    **connection: Any,
 ) -> None:
-    """Simulate vehicles streaming sectors to a server and report throughput and latency (open loop at sensor
-    rate by default: latency from each sector's scheduled time)."""
+    """Simulated vehicles streaming to a server: throughput and latency (open loop at sensor rate by
+    default: latency from each sector's scheduled time)."""
     from clients.loadtest.config import LoadTestConfig, OutputConfig, SourceConfig
-    from clients.loadtest.report import table
+    from clients.loadtest.report import table, to_json
     from clients.loadtest.run import run_loadtest
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     cfg = LoadTestConfig(
-        connect=connect_config(transport, url, zenoh_connect, zenoh_mode, zenoh_config, timeout),
+        connect=connect_config(**connection),
         source=SourceConfig(folder=_data(data, synthetic), max_scans=max_scans, every=every),
         mode=mode,
         vehicles=_vehicles(vehicles, sweep),
@@ -111,38 +127,49 @@ def loadtest(
         stop_after_failure=not keep_going,
         seed=seed,
     )
-    out = OutputConfig(json_path=json_path, csv_path=csv_path, plots_dir=plots, progress=progress)
-    report = _or_exit(run_loadtest, cfg, out)
-    typer.echo(table(report))
+    files = OutputConfig(json_path=out, csv_path=csv_path, plots_dir=plots, progress=progress)
+    report = _or_exit(run_loadtest, cfg, files)
+    click.echo(json.dumps(to_json(report)) if as_json else table(report))
 
 
+@click.command()
+@click.argument("source", type=click.Path(exists=True, path_type=Path))
+@click.option(
+    "--out",
+    type=NewFile,
+    default="predictions.jsonl",
+    show_default=True,
+    help="The prediction file (JSON lines).",
+)
+@click.option("--frames", type=Folder, help="Write a bird's-eye-view PNG per scan into this folder.")
+@click.option(
+    "--rate", type=click.FloatRange(0), default=10.0, show_default=True, help="Turns/s; 0: at once."
+)
+@click.option("--stream-id", default="replay", show_default=True, help="The stream the drive is sent as.")
+@connection_options
+@every_option
+@click.option("--max-scans", type=click.IntRange(1), help="Replay at most this many scans.")
+@json_option
 def replay(
-    source: Annotated[
-        Path, typer.Argument(help="folder of scans (KITTI .bin, nuScenes .pcd.bin, native .npz)")
-    ],
-    out: Annotated[Path, typer.Option(help="prediction file to write (JSON lines)")] = Path(
-        "predictions.jsonl"
-    ),
-    frames: Annotated[Path | None, typer.Option(help="write a bird's-eye-view PNG per scan here")] = None,
-    rate: Annotated[float, typer.Option(min=0, help="turns per second; 0: as fast as answered")] = 10.0,
-    stream_id: Annotated[str, typer.Option(help="the stream the drive is sent as")] = "replay",
-    transport: TransportOpt = Transport.HTTP,
-    url: UrlOpt = "http://127.0.0.1:8080",
-    zenoh_connect: ConnectOpt = "tcp/127.0.0.1:7447",
-    zenoh_mode: ZModeOpt = "client",
-    zenoh_config: ZFileOpt = None,
-    timeout: TimeoutOpt = 10.0,
-    every: Annotated[int, typer.Option(min=1, help="keep every n-th point")] = 1,
-    max_scans: Annotated[int | None, typer.Option(help="replay at most this many scans")] = None,
+    source: Path,
+    out: Path,
+    frames: Path | None,
+    rate: float,
+    stream_id: str,
+    every: int,
+    max_scans: int | None,
+    as_json: bool,
+    **connection: Any,
 ) -> None:
-    """Stream a recorded drive to a server and write its detections (and optional BEV frames)."""
+    """Stream a recorded drive to a server and write its detections (SOURCE: a folder of scans: KITTI .bin,
+    nuScenes .pcd.bin, native .npz; or one scan file)."""
     from clients.replay import ReplayConfig
     from clients.replay import replay as run_replay
 
     cfg = ReplayConfig(
         source=source,
         predictions=out,
-        connect=connect_config(transport, url, zenoh_connect, zenoh_mode, zenoh_config, timeout),
+        connect=connect_config(**connection),
         stream_id=stream_id,
         turns_per_s=rate,
         frames_dir=frames,
@@ -150,7 +177,10 @@ def replay(
         every=every,
     )
     s = _or_exit(run_replay, cfg)
-    typer.echo(
+    if as_json:
+        click.echo(json.dumps(dataclasses.asdict(s), default=str))
+        return
+    click.echo(
         f"replayed {s.scans} scans, {s.sectors} sectors: {s.ok} answered with detections, {s.errors} errors, "
         f"{s.late_sectors} sent late; predictions in {out}"
         + (f", {len(s.frames)} frames in {frames}" if frames else "")
@@ -158,14 +188,13 @@ def replay(
 
 
 def _or_exit(fn, *args):
-    """Run; a client error or missing data ends the command with its message and exit code 2."""
+    """Run; input that cannot be used ends the command with exit code 2, a client error with 1."""
     from clients.base import ClientError
-    from phim.process import tune_malloc
-
-    tune_malloc()  # sector-sized buffers stay on the heap: encoding a 30k-point sector 0.5 -> 0.08 ms
 
     try:
         return fn(*args)
-    except (ClientError, FileNotFoundError, ValueError) as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(code=2) from None
+    except (FileNotFoundError, ValueError) as e:
+        raise click.BadParameter(str(e)) from None
+    except ClientError as e:
+        click.echo(f"error: {e}", err=True)
+        raise SystemExit(1) from None

@@ -3,7 +3,8 @@
 `phim --help` and `phim --version` import nothing of the project and no third-party package but click, so
 they answer at once; `phim loadtest --help` imports the load tester's options (no torch, no zenoh, no
 FastAPI). Each entry names where its command lives as "module:function" (click's documented lazy-loading
-pattern); the function is a typer command (its options from `phim.options`) or a click command.
+pattern): a click command whose options come from one place (`phim.options` and the families' option
+modules; `phim serve`'s from the server's Settings).
 Exit codes: 0 success, 1 the run failed or broke a threshold, 2 usage.
 """
 
@@ -20,7 +21,7 @@ from phim.process import tune_malloc
 @dataclass(frozen=True)
 class Entry:
     target: str  # "module:function"
-    help: str  # the one line `phim --help` shows (a test holds it to the command's own first line)
+    help: str  # the one line `phim --help` shows
 
 
 @dataclass(frozen=True)
@@ -55,17 +56,13 @@ COMMANDS: dict[str, Entry | Group] = {
 }
 
 
-def load(name: str, entry: Entry) -> click.Command:
-    """Import the command's module and return it as a click command."""
-    module, function = entry.target.split(":")
-    command = getattr(importlib.import_module(module), function)
-    if isinstance(command, click.Command):
-        return command
-    import typer  # a plain function with typer annotations
-
-    app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
-    app.command(name)(command)
-    return typer.main.get_command(app)
+def load(entry: Entry) -> click.Command:
+    """Import the command's module and return its click command."""
+    module, name = entry.target.split(":")
+    command = getattr(importlib.import_module(module), name)
+    if not isinstance(command, click.Command):
+        raise TypeError(f"{entry.target} is not a click command")
+    return command
 
 
 class LazyGroup(click.Group):
@@ -82,7 +79,7 @@ class LazyGroup(click.Group):
         entry = self.table.get(cmd_name)
         if isinstance(entry, Group):
             return LazyGroup(entry.commands, name=cmd_name, help=entry.help, no_args_is_help=True)
-        return None if entry is None else load(cmd_name, entry)
+        return None if entry is None else load(entry)
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, e.help) for name, e in self.table.items()]
@@ -91,6 +88,7 @@ class LazyGroup(click.Group):
 
 
 @click.group(
+    "phim",
     cls=LazyGroup,
     table=COMMANDS,
     no_args_is_help=True,

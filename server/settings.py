@@ -1,6 +1,7 @@
 """Server settings: environment variables with the PHIM_ prefix, overridden by `phim serve` flags.
 
-Lists (zenoh endpoints) are comma-separated in the environment: PHIM_ZENOH_CONNECT=tcp/router:7447,tcp/b:7447.
+Lists (zenoh endpoints) are comma-separated: PHIM_ZENOH_CONNECT=tcp/router:7447,tcp/b:7447. This module
+imports pydantic and the contract only, so `phim serve --help` answers without torch.
 """
 
 from __future__ import annotations
@@ -14,9 +15,9 @@ from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from contract import Limits
-from server.worker import WorkerConfig
 
 if TYPE_CHECKING:
+    from server.worker import WorkerConfig
     from server.zenoh_transport import ZenohConfig
 
 Endpoints = Annotated[tuple[str, ...], NoDecode]
@@ -27,40 +28,53 @@ def default_worker_id() -> str:
 
 
 class Settings(BaseSettings):
+    """Every setting of `phim serve`: an environment variable PHIM_<NAME>, overridden by the flag --<name>
+    (both generated from this class: server/cli.py)."""
+
     model_config = SettingsConfigDict(env_prefix="PHIM_", extra="forbid", frozen=True)
 
     # HTTP
-    host: str = "127.0.0.1"
-    port: int = Field(8080, ge=0, le=65535)
+    host: str = Field("127.0.0.1", description="HTTP bind address.")
+    port: int = Field(8080, ge=0, le=65535, description="HTTP port.")
     # model
-    checkpoint: Path | None = None  # None: the embedded default model (server/default_model.py)
-    config: str | None = None  # with a checkpoint: the config it must have; without: untrained weights of it
-    device: str = Field("auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$")
-    threads: int = Field(0, ge=0)  # torch CPU threads; 0 leaves torch's default
-    warmup_sectors: int = Field(5, ge=0)
+    checkpoint: Path | None = Field(
+        None, description="Weights to serve [default: the embedded default model]."
+    )
+    config: str | None = Field(
+        None, description="The checkpoint's config (checked); without a checkpoint: serve it untrained."
+    )
+    device: str = Field("auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="auto, cpu, cuda or cuda:N.")
+    threads: int = Field(0, ge=0, description="Torch CPU threads (0: torch's default).")
+    warmup_sectors: int = Field(5, ge=0, description="Warm-up forwards before the worker is ready.")
     # scheduler and stream table
-    max_batch: int = Field(8, ge=1)
-    max_wait_ms: float = Field(0.0, ge=0)
-    queue_size: int = Field(64, ge=1)
-    deadline_ms: float = Field(2000.0, gt=0)
-    idle_timeout_s: float = Field(10.0, gt=0)
-    max_streams: int = Field(256, ge=1)
-    drain_timeout_s: float = Field(10.0, ge=0)
+    max_batch: int = Field(8, ge=1, description="Streams per forward.")
+    max_wait_ms: float = Field(
+        0.0, ge=0, description="How long the oldest sector may wait for a fuller batch."
+    )
+    queue_size: int = Field(64, ge=1, description="Queued sectors (all streams) before 503 overloaded.")
+    deadline_ms: float = Field(2000.0, gt=0, description="A sector not started by then gets 504.")
+    idle_timeout_s: float = Field(10.0, gt=0, description="Streams idle this long are evicted.")
+    max_streams: int = Field(256, ge=1, description="Live streams at most.")
+    drain_timeout_s: float = Field(
+        10.0, ge=0, description="On shutdown, keep answering queued sectors this long."
+    )
     # limits on a sector message
-    max_body_bytes: int = Field(64 * 2**20, ge=1024)
-    max_points: int = Field(1_000_000, ge=1)
-    max_string_len: int = Field(256, ge=1)
-    max_fields: int = Field(16, ge=4)
+    max_body_bytes: int = Field(64 * 2**20, ge=1024, description="Largest sector message (bytes).")
+    max_points: int = Field(1_000_000, ge=1, description="Points per sector at most.")
+    max_string_len: int = Field(256, ge=1, description="Longest stream ID or field name.")
+    max_fields: int = Field(16, ge=4, description="Point columns at most.")
     # zenoh
-    zenoh_enabled: bool = True
-    zenoh_mode: Literal["peer", "client", "router"] = "peer"
-    zenoh_listen: Endpoints = ("tcp/127.0.0.1:7447",)
-    zenoh_connect: Endpoints = ()
-    zenoh_config_file: Path | None = None
-    zenoh_multicast_scouting: bool = False
+    zenoh_enabled: bool = Field(True, description="Serve over zenoh as well as HTTP.")
+    zenoh_mode: Literal["peer", "client", "router"] = Field("peer", description="Zenoh session mode.")
+    zenoh_listen: Endpoints = Field(("tcp/127.0.0.1:7447",), description="Zenoh endpoints to listen on.")
+    zenoh_connect: Endpoints = Field((), description="Zenoh endpoints to connect to (a router, other peers).")
+    zenoh_config_file: Path | None = Field(None, description="A zenoh JSON5 config file (TLS, ACL, ...).")
+    zenoh_multicast_scouting: bool = Field(False, description="Zenoh multicast scouting.")
     # identity and logs
-    worker_id: str = Field(default_factory=default_worker_id)
-    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    worker_id: str = Field(
+        default_factory=default_worker_id, description="This worker's ID [default: host-pid]."
+    )
+    log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="Log level.")
 
     @field_validator("zenoh_listen", "zenoh_connect", mode="before")
     @classmethod
@@ -78,6 +92,8 @@ class Settings(BaseSettings):
         return Limits(self.max_body_bytes, self.max_points, self.max_string_len, self.max_fields)
 
     def worker_config(self) -> WorkerConfig:
+        from server.worker import WorkerConfig
+
         return WorkerConfig(
             worker_id=self.worker_id,
             max_batch=self.max_batch,

@@ -136,7 +136,7 @@ def test_cli_loadtest_and_its_json(served: Served, tmp_path: Path) -> None:
     out = tmp_path / "cli.json"
     args = ["loadtest", "--transport", "zenoh", "--url", served.url, "--zenoh-connect", served.zenoh_endpoint]
     args += ["--vehicles", "1", "--duration", "1", "--turns-per-s", "1", "--every", str(EVERY)]
-    args += ["--data", str(KITTI_VELODYNE), "--max-scans", "2", "--json", str(out), "--no-progress"]
+    args += ["--data", str(KITTI_VELODYNE), "--max-scans", "2", "--out", str(out), "--no-progress"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "| vehicles |" in result.output and "Most vehicles held" in result.output
@@ -150,7 +150,7 @@ def test_cli_loadtest_without_a_server_fails_cleanly(tmp_path: Path) -> None:
 
     url = f"http://127.0.0.1:{free_port()}"
     args = ["loadtest", "--url", url, "--duration", "0.5", "--sectors-per-turn", "4", "--synthetic"]
-    result = CliRunner().invoke(app, [*args, "--no-progress", "--json", str(tmp_path / "x.json")])
+    result = CliRunner().invoke(app, [*args, "--no-progress", "--out", str(tmp_path / "x.json")])
     assert result.exit_code == 0, result.output  # every sector is counted: lost to the transport
     doc = json.loads((tmp_path / "x.json").read_text())
     assert (

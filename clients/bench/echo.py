@@ -18,10 +18,9 @@ import struct
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Annotated
 
+import click
 import numpy as np
-import typer
 import zenoh
 from starlette.applications import Starlette
 from starlette.requests import Request
@@ -95,10 +94,11 @@ def serve_zenoh(holder: Holder, listen: str) -> tuple[zenoh.Session, zenoh.Query
     return session, queryable
 
 
-def main(
-    port: Annotated[int, typer.Option()] = 18090,
-    zenoh_listen: Annotated[str, typer.Option()] = "tcp/127.0.0.1:17490",
-) -> None:
+@click.command()
+@click.option("--port", type=int, default=18090, show_default=True, help="HTTP port.")
+@click.option("--zenoh-listen", default="tcp/127.0.0.1:17490", show_default=True, help="Zenoh endpoint.")
+def main(port: int, zenoh_listen: str) -> None:
+    """Serve the bare responder until killed."""
     import uvicorn
 
     tune_malloc()
@@ -109,4 +109,4 @@ def main(
 
 
 if __name__ == "__main__":
-    typer.run(main)
+    main()

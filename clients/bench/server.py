@@ -29,22 +29,23 @@ import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Annotated
 
+import click
 import numpy as np
-import typer
 import zenoh
 
 from clients.base import DetectorClient, sector_message
 from clients.bench.echo import ECHO_KEY, ECHO_PATH, HELD, request_header
 from clients.connect import ConnectConfig, Transport, make_client
 from clients.http_conn import ConnectionPool
+from clients.options import zenoh_connect_option
 from clients.sectorizer import split_scan
 from clients.zenoh_session import open_session
-from contract import encode_reply, encode_sector
-from model.data.readers import read_scan
+from contract import REQUIRED_FIELDS, encode_reply, encode_sector
+from model.data.readers import Spin, read_scan
 from model.data.samples import KITTI_000000
-from phim.process import tune_malloc
+from model.data.synthetic import synthetic_turn
+from phim.options import EnumValue, json_option
 
 READY_TIMEOUT_S = 300.0
 
@@ -207,10 +208,15 @@ def _wait_ready(url: str, proc: subprocess.Popen) -> None:
     raise RuntimeError(f"{url} not ready after {READY_TIMEOUT_S:.0f} s")
 
 
-def load_sectors(scan_path: Path, sectors: int = 4) -> list[np.ndarray]:
-    """A recorded scan (KITTI .bin, nuScenes .pcd.bin, .npz) -> its sectors (N_k, 4), in sweep order."""
-    scan = read_scan(scan_path)
-    return [s.points for s in split_scan(scan.points, scan.fields, sectors, scan.spin)]
+def load_sectors(scan_path: Path | None, sectors: int = 4) -> list[np.ndarray]:
+    """A recorded scan (KITTI .bin, nuScenes .pcd.bin, .npz; None: a synthetic turn) -> its sectors (N_k, 4),
+    in sweep order."""
+    if scan_path is None:
+        points, fields, spin = synthetic_turn(seed=0), REQUIRED_FIELDS, Spin.CCW
+    else:
+        scan = read_scan(scan_path)
+        points, fields, spin = scan.points, scan.fields, scan.spin
+    return [s.points for s in split_scan(points, fields, sectors, spin)]
 
 
 def run_bench(
@@ -257,30 +263,48 @@ def table(results: list[TransportBench]) -> str:
     return "\n".join(rows)
 
 
+@click.command()
+@click.option(
+    "--url", envvar="PHIM_URL", show_envvar=True, help="A running server [default: start `phim serve` here]."
+)
+@zenoh_connect_option
+@click.option(
+    "--transport", type=EnumValue(Transport), multiple=True, help="Repeatable [default: http and zenoh]."
+)
+@click.option(
+    "--points",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="A scan file [default: KITTI 000000 if present, else a synthetic turn].",
+)
+@click.option(
+    "--turns", type=click.IntRange(1), default=25, show_default=True, help="Timed turns per transport."
+)
+@click.option(
+    "--warmup-turns", type=click.IntRange(0), default=3, show_default=True, help="Untimed turns first."
+)
+@click.option("--threads", type=click.IntRange(1), default=2, show_default=True, help="The spawned server's.")
+@click.option(
+    "--floor/--no-floor",
+    default=True,
+    show_default=True,
+    help="After each request, a bare round trip of its size (the transport floor).",
+)
+@json_option
 def bench_server_cmd(
-    url: Annotated[
-        str | None, typer.Option(help="a running server (default: start `phim serve` here)")
-    ] = None,
-    zenoh_connect: Annotated[str, typer.Option(help="its zenoh endpoint, with --url")] = "tcp/127.0.0.1:7447",
-    transport: Annotated[list[Transport] | None, typer.Option(help="repeatable; default: both")] = None,
-    points: Annotated[
-        Path | None, typer.Option(help="a KITTI-style .bin scan (default: KITTI 000000)")
-    ] = None,
-    turns: Annotated[int, typer.Option(help="timed turns per transport (4 sectors each)")] = 25,
-    warmup_turns: Annotated[int, typer.Option(help="untimed turns first")] = 3,
-    threads: Annotated[int, typer.Option(help="torch CPU threads of the spawned server")] = 2,
-    floor: Annotated[
-        bool, typer.Option(help="after each request, a bare round trip of its size (the transport floor)")
-    ] = True,
-    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
+    url: str | None,
+    zenoh_connect: str,
+    transport: tuple[Transport, ...],
+    points: Path | None,
+    turns: int,
+    warmup_turns: int,
+    threads: int,
+    floor: bool,
+    as_json: bool,
 ) -> None:
-    """End-to-end latency per sector beside the model's own time: the server's overhead per transport."""
-    tune_malloc()  # the client side too: sector-sized buffers stay on the heap
-    scan = points or KITTI_000000
-    if not scan.is_file():
-        raise typer.BadParameter(f"{scan}: no such file (give --points)")
+    """The server's own overhead per sector: end-to-end latency beside the model's time, per transport."""
+    scan = points or (KITTI_000000 if KITTI_000000.is_file() else None)
     sectors = load_sectors(scan)
-    chosen = transport or [Transport.HTTP, Transport.ZENOH]
+    chosen = list(transport) or [Transport.HTTP, Transport.ZENOH]
     with contextlib.ExitStack() as stack:
         echo = stack.enter_context(spawned_echo()) if floor else None
         if url:
@@ -288,8 +312,9 @@ def bench_server_cmd(
         else:
             connect = stack.enter_context(spawned_server(threads, ["--log-level", "warning"]))
         results = run_bench(connect, chosen, sectors, turns, warmup_turns, echo)
+    source = str(scan) if scan else "synthetic_turn(seed=0)"
     if as_json:
-        typer.echo(json.dumps({"scan": str(scan), "results": [r.to_dict() for r in results]}))
+        click.echo(json.dumps({"scan": source, "results": [r.to_dict() for r in results]}))
         return
-    typer.echo(f"scan: {scan}; one stream per transport, one request in flight")
-    typer.echo(table(results))
+    click.echo(f"scan: {source}; one stream per transport, one request in flight")
+    click.echo(table(results))

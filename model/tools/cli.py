@@ -1,30 +1,32 @@
-"""`phim model ...`, `phim bench model` and `phim bench ops` commands."""
+"""`phim model info`, `phim bench model` and `phim bench ops` (torch is imported when a command runs)."""
 
 from __future__ import annotations
 
 import json
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING
 
-import torch
-import typer
+import click
 
-from model.config import CONFIGS, ScanImpl, get_config
-from model.data.samples import KITTI_000000
-from model.data.synthetic import synthetic_turn
-from model.device import pick_device
-from model.sectors import load_kitti_bin
-from phim.process import tune_malloc
+from model.config import ScanImpl, get_config
+from model.tools.options import checkpoint_option, config_option, device_option, points_option, threads_option
+from phim.options import EnumValue, json_option
 
-ConfigOpt = Annotated[str, typer.Option("--config", help=f"model config: {', '.join(CONFIGS)}")]
-PointsOpt = Annotated[
-    Path | None,
-    typer.Option("--points", help="a KITTI-style float32 (N,4) .bin scan; default: KITTI 000000 if present"),
-]
+if TYPE_CHECKING:
+    import torch
+
+    from model.detector import PHiM
 
 
-def _load_turn(points: Path | None, fallback_kitti: bool) -> tuple[torch.Tensor, str]:
+def load_turn(points: Path | None, fallback_kitti: bool) -> tuple[torch.Tensor, str]:
+    """The scan to run on: `points`, else KITTI 000000 when asked and present, else a synthetic turn."""
+    import torch
+
+    from model.data.samples import KITTI_000000
+    from model.data.synthetic import synthetic_turn
+    from model.sectors import load_kitti_bin
+
     if points is not None:
         return load_kitti_bin(str(points)), str(points)
     if fallback_kitti and KITTI_000000.is_file():
@@ -32,96 +34,103 @@ def _load_turn(points: Path | None, fallback_kitti: bool) -> tuple[torch.Tensor,
     return torch.from_numpy(synthetic_turn(seed=0)), "synthetic_turn(seed=0)"
 
 
-def info(
-    config: ConfigOpt = "paper",
-    points: PointsOpt = None,
-    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
-) -> None:
+def load_model(config: str, checkpoint: str | None, device: str, threads: int = 0) -> PHiM:
+    """A fresh model of `config` (no checkpoint) or the weights of `checkpoint`, on `device`."""
+    import torch
+
+    from model.checkpoint import checkpoint_path, load_checkpoint
+    from model.detector import PHiM
+    from model.device import pick_device
+
+    if threads:
+        torch.set_num_threads(threads)
+    dev, cfg = pick_device(device), get_config(config)
+    return load_checkpoint(checkpoint_path(checkpoint), cfg, dev) if checkpoint else PHiM(cfg).to(dev)
+
+
+@click.command()
+@config_option("paper")
+@points_option
+@json_option
+def info(config: str, points: Path | None, as_json: bool) -> None:
     """Parameter count and measured GFLOPs of a config (FLOPs counted on a real forward)."""
     from model.tools.info import model_info
 
-    tune_malloc()
-    turn, source = _load_turn(points, fallback_kitti=False)
-    result = model_info(get_config(config), turn).to_dict()
-    result["input"] = source
+    turn, source = load_turn(points, fallback_kitti=False)
+    result = model_info(get_config(config), turn).to_dict() | {"input": source}
     if as_json:
-        typer.echo(json.dumps(result))
+        click.echo(json.dumps(result))
         return
     for key, value in result.items():
-        typer.echo(f"{key:>24}  {value}")
+        click.echo(f"{key:>24}  {value}")
 
 
+@click.command()
+@config_option("tiny")
+@points_option
+@device_option()
+@click.option("--batch", type=click.IntRange(1), default=1, show_default=True, help="Streams per forward.")
+@click.option("--turns", type=click.IntRange(1), default=10, show_default=True, help="Timed turns.")
+@threads_option
+@checkpoint_option(None)
+@click.option("--scan", type=EnumValue(ScanImpl), help="Selective scan [default: the config's].")
+@json_option
 def bench_model_cmd(
-    config: ConfigOpt = "tiny",
-    points: PointsOpt = None,
-    device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "auto",
-    batch: Annotated[int, typer.Option(help="streams per forward")] = 1,
-    turns: Annotated[int, typer.Option(help="timed turns")] = 10,
-    threads: Annotated[int, typer.Option(help="torch CPU threads (0: leave as is)")] = 0,
-    checkpoint: Annotated[
-        str | None, typer.Option(help="weights to load: a file, or 'default' (default: fresh init)")
-    ] = None,
-    scan: Annotated[ScanImpl | None, typer.Option(help="selective scan (default: the config's)")] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
+    config: str,
+    points: Path | None,
+    device: str,
+    batch: int,
+    turns: int,
+    threads: int,
+    checkpoint: str | None,
+    scan: ScanImpl | None,
+    as_json: bool,
 ) -> None:
-    """Time one sector at a time of a scan, with the sector buffer loaded."""
-    from model.checkpoint import checkpoint_path, load_checkpoint
-    from model.detector import PHiM
+    """Per-sector latency, sector buffer loaded: one sector at a time of a scan (fresh weights by default)."""
     from model.tools.bench import bench_model
 
     logging.basicConfig(level=logging.WARNING)
-    tune_malloc()
-    if threads:
-        torch.set_num_threads(threads)
-    dev = pick_device(device)
-    cfg = get_config(config)
-    model = load_checkpoint(checkpoint_path(checkpoint), cfg, dev) if checkpoint else PHiM(cfg).to(dev)
+    model = load_model(config, checkpoint, device, threads)
     if scan is not None:
         model.set_scan(scan)
-    turn, source = _load_turn(points, fallback_kitti=True)
-    result = bench_model(model, turn, batch=batch, turns=turns).to_dict()
-    result["input"] = source
+    turn, source = load_turn(points, fallback_kitti=True)
+    result = bench_model(model, turn, batch=batch, turns=turns).to_dict() | {"input": source}
     if as_json:
-        typer.echo(json.dumps(result))
+        click.echo(json.dumps(result))
         return
-    typer.echo(f"input: {source}")
+    click.echo(f"input: {source}")
     for key in ("config", "device", "scan", "threads", "batch", "points_per_sector", "iterations"):
-        typer.echo(f"{key:>24}  {result[key]}")
-    typer.echo("\n| metric | value |\n|---|---|")
+        click.echo(f"{key:>24}  {result[key]}")
+    click.echo("\n| metric | value |\n|---|---|")
     for key in ("p50_ms", "p90_ms", "mean_ms", "per_sector_p50_ms", "peak_mem_mb", "full_turn_peak_mem_mb"):
-        typer.echo(f"| {key} | {result[key]} |")
+        click.echo(f"| {key} | {result[key]} |")
 
 
+@click.command()
+@config_option("paper")
+@points_option
+@device_option("cpu")
+@checkpoint_option(None)
+@click.option("--rows", type=click.IntRange(1), default=25, show_default=True, help="Functions to list.")
+@json_option
 def bench_ops_cmd(
-    config: ConfigOpt = "paper",
-    points: PointsOpt = None,
-    device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N")] = "cpu",
-    checkpoint: Annotated[
-        str | None, typer.Option(help="weights to load: a file, or 'default' (default: fresh init)")
-    ] = None,
-    rows: Annotated[int, typer.Option(help="functions to list, most ops first")] = 25,
-    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
+    config: str, points: Path | None, device: str, checkpoint: str | None, rows: int, as_json: bool
 ) -> None:
-    """Torch ops (kernel launches on a GPU), views and host syncs of one streaming step, by model function."""
-    from model.checkpoint import checkpoint_path, load_checkpoint
-    from model.detector import PHiM
+    """Torch ops and host syncs of one streaming step (kernel launches on a GPU), by model function."""
     from model.tools.op_count import count_ops
 
     logging.basicConfig(level=logging.WARNING)
-    tune_malloc()
-    dev = pick_device(device)
-    cfg = get_config(config)
-    model = load_checkpoint(checkpoint_path(checkpoint), cfg, dev) if checkpoint else PHiM(cfg).to(dev)
-    turn, source = _load_turn(points, fallback_kitti=True)
+    model = load_model(config, checkpoint, device)
+    turn, source = load_turn(points, fallback_kitti=True)
     report = count_ops(model.eval(), turn)
     if as_json:
-        typer.echo(json.dumps(report.to_dict() | {"input": source}))
+        click.echo(json.dumps(report.to_dict() | {"input": source}))
         return
-    typer.echo(f"input: {source}; config {report.config}, device {report.device}, scan {report.scan}")
-    typer.echo("\n| where | ops | views | host syncs |\n|---|---|---|---|")
+    click.echo(f"input: {source}; config {report.config}, device {report.device}, scan {report.scan}")
+    click.echo("\n| where | ops | views | host syncs |\n|---|---|---|---|")
     for r in report.rows[:rows]:
-        typer.echo(f"| {r.where} | {r.ops} | {r.views} | {r.syncs} |")
-    typer.echo(f"| **all** | **{report.ops}** | {report.views} | **{report.syncs}** |")
-    typer.echo(f"| all but the selective scan | **{report.ops_outside_scan}** | | |")
+        click.echo(f"| {r.where} | {r.ops} | {r.views} | {r.syncs} |")
+    click.echo(f"| **all** | **{report.ops}** | {report.views} | **{report.syncs}** |")
+    click.echo(f"| all but the selective scan | **{report.ops_outside_scan}** | | |")
     if report.cuda_kernels is not None:
-        typer.echo(f"| CUDA kernels launched | {report.cuda_kernels} | | |")
+        click.echo(f"| CUDA kernels launched | {report.cuda_kernels} | | |")

@@ -4,56 +4,77 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated
 
-import typer
+import click
 
-from model.config import CONFIGS
-from model.train.loss import LossConfig
-
-log = logging.getLogger("phim.train")
-
-DataOpt = Annotated[str, typer.Option("--data", help="sim, kitti:DIR, nuscenes:DIR or native:DIR")]
-DeviceOpt = Annotated[str, typer.Option("--device", help="auto (cuda if present), cpu, cuda, cuda:1")]
-CheckpointOpt = Annotated[str, typer.Option("--checkpoint", help="a checkpoint file, or 'default'")]
-HeldOutSeedOpt = Annotated[int, typer.Option(help="sim stream of the held-out scans")]
+from model.tools.options import config_option, data_option, device_option, threads_option
+from model.train.loss import LossConfig  # imports torch: `phim train --help` takes about a second
 
 
+def _int(name: str, default: int, minimum: int, help_text: str):
+    return click.option(
+        name, type=click.IntRange(minimum), default=default, show_default=True, help=help_text
+    )
+
+
+@click.command()
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Run directory.")
+@config_option("tiny")
+@data_option
+@_int("--steps", 6000, 1, "Optimizer steps (the one-cycle schedule spans them).")
+@_int("--batch-size", 1, 1, "Scans per step and process.")
+@click.option("--lr", type=float, default=3e-3, show_default=True, help="Peak learning rate (one-cycle).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Sim stream and augmentation seed.")
+@_int("--workers", 1, 0, "Data-loader processes per training process.")
+@_int("--checkpoint-every", 200, 1, "Steps between checkpoints.")
+@_int("--log-every", 10, 1, "Steps between metrics.csv rows.")
+@click.option("--resume", is_flag=True, help="Continue the run in --out.")
+@click.option(
+    "--init", default="", help="Start from this checkpoint's weights ('default': the shipped model)."
+)
+@click.option(
+    "--direction-weight",
+    type=float,
+    default=LossConfig.direction_weight,
+    show_default=True,
+    help="Weight of the direction classifier's loss (axis_direction heading code).",
+)
+@device_option()
+@threads_option
+@click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
+@click.option(
+    "--max-minutes",
+    type=click.FloatRange(0),
+    default=0.0,
+    show_default=True,
+    help="Save and stop after this many minutes; --resume continues (0: no limit).",
+)
 def train_cmd(
-    out: Annotated[Path, typer.Option("--out", help="run directory (checkpoints, metrics.csv)")],
-    config: Annotated[str, typer.Option("--config", help=f"model config: {', '.join(CONFIGS)}")] = "tiny",
-    data: DataOpt = "sim",
-    steps: Annotated[int, typer.Option(help="optimizer steps (the one-cycle schedule spans them)")] = 6000,
-    batch_size: Annotated[int, typer.Option(help="scans per step and process")] = 1,
-    lr: Annotated[float, typer.Option(help="peak learning rate of the one-cycle schedule")] = 3e-3,
-    seed: Annotated[int, typer.Option(help="sim stream and augmentation seed (eval uses 7)")] = 0,
-    workers: Annotated[int, typer.Option(help="data-loader processes per training process")] = 1,
-    checkpoint_every: Annotated[int, typer.Option(help="steps between checkpoints")] = 200,
-    log_every: Annotated[int, typer.Option(help="steps between metrics.csv rows")] = 10,
-    resume: Annotated[bool, typer.Option("--resume", help="continue the run in --out")] = False,
-    init: Annotated[
-        str, typer.Option(help="start from this checkpoint's weights ('default': the shipped model)")
-    ] = "",
-    direction_weight: Annotated[
-        float, typer.Option(help="weight of the direction classifier's loss (axis_direction heading code)")
-    ] = LossConfig.direction_weight,
-    device: DeviceOpt = "auto",
-    threads: Annotated[int, typer.Option(help="torch CPU threads (0: torch's default)")] = 0,
-    progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
-    max_minutes: Annotated[
-        float,
-        typer.Option(help="save and stop after this many minutes; --resume continues (0: no limit)", min=0),
-    ] = 0.0,
+    out: Path,
+    config: str,
+    data: str,
+    steps: int,
+    batch_size: int,
+    lr: float,
+    seed: int,
+    workers: int,
+    checkpoint_every: int,
+    log_every: int,
+    resume: bool,
+    init: str,
+    direction_weight: float,
+    device: str,
+    threads: int,
+    progress: bool,
+    max_minutes: float,
 ) -> None:
     """Train a model (streaming, as the paper trains); torchrun runs the same command with DDP."""
     import torch
 
     from model.checkpoint import checkpoint_path
     from model.train.loop import TrainConfig, train
-    from phim.process import tune_malloc
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    tune_malloc()
     if threads:
         torch.set_num_threads(threads)
     cfg = TrainConfig(
@@ -70,4 +91,4 @@ def train_cmd(
         loss=LossConfig(direction_weight=direction_weight),
     )
     path = train(cfg, out, resume=resume, device=device, progress=progress, max_minutes=max_minutes)
-    typer.echo(f"model: {path}")
+    click.echo(f"model: {path}")

@@ -1,4 +1,4 @@
-"""A progress bar for training (rich, which typer already brings), or nothing when disabled."""
+"""A progress bar for training (rich), or nothing when disabled."""
 
 from __future__ import annotations
 

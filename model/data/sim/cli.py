@@ -6,23 +6,26 @@ import json
 import statistics
 import time
 from pathlib import Path
-from typing import Annotated
 
+import click
 import numpy as np
-import typer
 
 from model.config import CLASS_NAMES
 from model.data.sim.sensors import Sensor
 from model.data.sim.simulate import SimConfig, simulate
 from model.data.types import LEVEL_1, LEVEL_2, LabeledScan
+from phim.options import EnumValue, json_option
 
-SensorOpt = Annotated[
-    list[Sensor] | None,
-    typer.Option("--sensor", help="sensor preset; repeat it to draw one of them per seed [hdl64e]"),
-]
+sensor_option = click.option(
+    "--sensor",
+    "sensors",
+    type=EnumValue(Sensor),
+    multiple=True,
+    help="Sensor preset; repeat it to draw one of them per seed [default: hdl64e].",
+)
 
 
-def _config(sensors: list[Sensor] | None) -> SimConfig:
+def _config(sensors: tuple[Sensor, ...]) -> SimConfig:
     if not sensors:
         return SimConfig()
     if len(sensors) == 1:
@@ -61,36 +64,31 @@ def draw_scan(path: Path, scan: LabeledScan, extent_m: float = 50.0) -> Path:
     return save_figure(plt, fig, path)
 
 
-def sim_cmd(
-    seed: Annotated[int, typer.Option(help="scene seed")] = 0,
-    sensor: SensorOpt = None,
-    png: Annotated[Path | None, typer.Option(help="write the bird's-eye view here")] = None,
-    extent: Annotated[float, typer.Option(help="half width of the picture (m)")] = 50.0,
-) -> None:
+@click.command()
+@click.option("--seed", type=int, default=0, show_default=True, help="Scene seed.")
+@sensor_option
+@click.option(
+    "--png", type=click.Path(dir_okay=False, path_type=Path), help="Write the bird's-eye view here."
+)
+@click.option("--extent", type=click.FloatRange(1.0), default=50.0, show_default=True, help="Half width (m).")
+def sim_cmd(seed: int, sensors: tuple[Sensor, ...], png: Path | None, extent: float) -> None:
     """Simulate one LiDAR turn through a random street scene and summarize it."""
-    from phim.process import tune_malloc
-
-    tune_malloc()
     start = time.perf_counter()
-    scan = simulate(seed, _config(sensor))
-    typer.echo(summary(scan, time.perf_counter() - start))
+    scan = simulate(seed, _config(sensors))
+    click.echo(summary(scan, time.perf_counter() - start))
     if png is not None:
-        typer.echo(f"wrote {draw_scan(png, scan, extent)}")
+        click.echo(f"wrote {draw_scan(png, scan, extent)}")
 
 
-def bench_sim_cmd(
-    seeds: Annotated[int, typer.Option(help="timed scans (seeds 1..N, after one warm-up scan)")] = 20,
-    sensor: SensorOpt = None,
-    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
-) -> None:
+@click.command()
+@click.option(
+    "--seeds", type=click.IntRange(1), default=20, show_default=True, help="Timed scans, seeds 1..N."
+)
+@sensor_option
+@json_option
+def bench_sim_cmd(seeds: int, sensors: tuple[Sensor, ...], as_json: bool) -> None:
     """Simulator throughput, single-threaded: scans per second over N seeds."""
-    import torch
-
-    from phim.process import tune_malloc
-
-    tune_malloc()
-    torch.set_num_threads(1)  # only the sector lookup uses torch; one process per core is the plan
-    cfg = _config(sensor)
+    cfg = _config(sensors)
     simulate(0, cfg)
     seconds, points, boxes = [], [], []
     for seed in range(1, seeds + 1):
@@ -101,7 +99,7 @@ def bench_sim_cmd(
         boxes.append(np.bincount(scan.gt.labels, minlength=len(CLASS_NAMES)))
     per_class = np.mean(boxes, axis=0)
     result = {
-        "sensor": ",".join(s.value for s in sensor) if sensor else Sensor.HDL64E.value,
+        "sensor": ",".join(s.value for s in sensors) if sensors else Sensor.HDL64E.value,
         "scans": seeds,
         "scans_per_s": seeds / sum(seconds),
         "mean_ms": 1e3 * statistics.fmean(seconds),
@@ -111,7 +109,7 @@ def bench_sim_cmd(
         **{f"mean_{name.lower()}": float(per_class[i]) for i, name in enumerate(CLASS_NAMES)},
     }
     if as_json:
-        typer.echo(json.dumps(result))
+        click.echo(json.dumps(result))
         return
     for key, value in result.items():
-        typer.echo(f"{key:>18}  {value:.1f}" if isinstance(value, float) else f"{key:>18}  {value}")
+        click.echo(f"{key:>18}  {value:.1f}" if isinstance(value, float) else f"{key:>18}  {value}")

@@ -1,0 +1,95 @@
+"""The options of the model commands (model info, bench model/ops, train, eval, diagnose), each defined once
+with its PHIM_ environment variable; the defaults that differ by command are arguments."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from model.config import CONFIGS
+
+Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
+
+
+def config_option(default: str) -> Decorator:
+    return click.option(
+        "--config",
+        envvar="PHIM_CONFIG",
+        type=click.Choice(list(CONFIGS)),
+        default=default,
+        show_default=True,
+        show_envvar=True,
+        help="Model config.",
+    )
+
+
+def device_option(default: str = "auto") -> Decorator:
+    return click.option(
+        "--device",
+        envvar="PHIM_DEVICE",
+        default=default,
+        show_default=True,
+        show_envvar=True,
+        help="auto (cuda if present), cpu, cuda or cuda:N.",
+    )
+
+
+def checkpoint_option(default: str | None) -> Decorator:
+    return click.option(
+        "--checkpoint",
+        envvar="PHIM_CHECKPOINT",
+        default=default,
+        show_default=default is not None,
+        show_envvar=True,
+        help="Weights: a checkpoint file, or 'default' (the shipped model)"
+        + ("." if default else " [default: fresh, untrained weights]."),
+    )
+
+
+def _check_data_spec(ctx: click.Context, param: click.Parameter, spec: str) -> str:
+    """The spec's syntax and, for a folder spec, that the folder holds what its kind needs (usage errors)."""
+    from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
+
+    try:
+        parsed = parse_data_spec(spec)
+        if parsed.kind is not DataKind.SIM:
+            list_scan_paths(parsed)
+    except (ValueError, FileNotFoundError) as e:
+        raise click.BadParameter(str(e)) from None
+    return spec
+
+
+data_option = click.option(
+    "--data",
+    envvar="PHIM_DATA",
+    default="sim",
+    show_default=True,
+    show_envvar=True,
+    callback=_check_data_spec,
+    help="Data: sim, kitti:DIR, nuscenes:DIR or native:DIR.",
+)
+threads_option = click.option(
+    "--threads",
+    envvar="PHIM_THREADS",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    show_envvar=True,
+    help="Torch CPU threads (0: torch's default).",
+)
+points_option = click.option(
+    "--points",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="A KITTI-style float32 (N, 4) .bin scan [default: KITTI 000000 if present, else a synthetic turn].",
+)
+held_out_seed_option = click.option(
+    "--seed",
+    type=int,
+    default=7,
+    show_default=True,
+    help="Sim stream of the held-out scans (training uses 0).",
+)
