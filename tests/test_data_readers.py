@@ -28,6 +28,7 @@ NUSCENES = (
     SHARED_DATA / "nuscenes_sample" / "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
 )
 VEHICLE, PEDESTRIAN, CYCLIST = range(3)
+SAMPLES = pytest.mark.samples
 
 
 def _kitti_types(root: Path, name: str) -> list[str]:
@@ -38,6 +39,7 @@ def test_spin_moved_with_the_readers() -> None:
     assert clients.sectorizer.Spin is Spin
 
 
+@pytest.mark.samples
 def test_kitti_frames_map_classes_and_every_box_holds_points() -> None:
     """Frames 000000..000005: Car x5 + Truck -> VEHICLE, Pedestrian x2, Cyclist; Misc and DontCare dropped."""
     want = {"Car": VEHICLE, "Truck": VEHICLE, "Pedestrian": PEDESTRIAN, "Cyclist": CYCLIST}
@@ -58,6 +60,7 @@ def test_kitti_frames_map_classes_and_every_box_holds_points() -> None:
     assert totals == {VEHICLE: 6, PEDESTRIAN: 2, CYCLIST: 1}
 
 
+@pytest.mark.samples
 def test_kitti_label_fov_is_the_left_camera_image() -> None:
     """P2 of frames 000001..5 (fx 721.5, cx 609.6) over 1242 px: about -41.2 .. +40.2 degrees; 000000's
     camera (fx 707.0, cx 604.1) sees a little wider."""
@@ -68,6 +71,7 @@ def test_kitti_label_fov_is_the_left_camera_image() -> None:
         assert abs(lo - lo_deg) < 0.3 and abs(hi - hi_deg) < 0.3, (lo, hi)
 
 
+@pytest.mark.samples
 def test_sectors_match_the_model_split() -> None:
     scan = read_labeled(KITTI / "velodyne" / "000002.bin", sectors=8)
     pts = torch.from_numpy(scan.points)
@@ -80,6 +84,7 @@ def test_sectors_match_the_model_split() -> None:
     )
 
 
+@pytest.mark.samples
 def test_argoverse_upper_case_classes_and_boxes_on_points() -> None:
     """Car / PEDESTRIAN (upper case) map case-insensitively; ON_ROAD_OBSTACLE is dropped; only 4-6 boxes
     per frame hold no points (measured: 6, 6, 4)."""
@@ -103,6 +108,7 @@ def _nuscenes_table() -> tuple[list[str], np.ndarray, np.ndarray]:
     return [r[0] for r in rows], boxes, np.array([int(r[10]) for r in rows])
 
 
+@pytest.mark.samples
 def test_nuscenes_counts_agree_with_num_lidar_pts_in_either_frame() -> None:
     """README: for 61 of the 69 boxes our point-in-box count equals num_lidar_pts (65 within one), counted
     in the file's own frame; turning points and boxes into x forward, y left changes no count."""
@@ -130,6 +136,7 @@ def _labeled_kitti_with_time() -> LabeledScan:
     return LabeledScan(scan.name, scan.points, scan.fields, scan.gt, time, scan.sector, scan.label_fov)
 
 
+@pytest.mark.samples
 def test_native_round_trip(tmp_path: Path) -> None:
     scan = _labeled_kitti_with_time()
     write_labeled(tmp_path / "000001.npz", scan)
@@ -164,6 +171,7 @@ def test_native_without_gt_other_columns_and_bad_names(tmp_path: Path) -> None:
         read_labeled(tmp_path / "c.npz")
 
 
+@pytest.mark.samples
 def test_data_specs_parse_and_iterate(tmp_path: Path) -> None:
     assert parse_data_spec("sim") == DataSpec(DataKind.SIM)
     assert parse_data_spec(f"kitti:{KITTI}") == DataSpec(DataKind.KITTI, KITTI)
@@ -181,9 +189,11 @@ def test_data_specs_parse_and_iterate(tmp_path: Path) -> None:
         ("kitti", ValueError, "kitti needs a folder"),
         ("sim:3", ValueError, "sim takes no argument"),
         ("kitti:/no/such/folder", FileNotFoundError, "/no/such/folder is not a folder"),
-        (f"kitti:{SHARED_DATA}", FileNotFoundError, "lacks.*velodyne/, label_2/ and calib/"),
-        (f"nuscenes:{KITTI}", FileNotFoundError, r"no \*\.pcd\.bin"),
-        (f"native:{KITTI}", FileNotFoundError, r"no \*\.npz"),
+        pytest.param(
+            f"kitti:{SHARED_DATA}", FileNotFoundError, "lacks.*velodyne/, label_2/ and calib/", marks=SAMPLES
+        ),
+        pytest.param(f"nuscenes:{KITTI}", FileNotFoundError, r"no \*\.pcd\.bin", marks=SAMPLES),
+        pytest.param(f"native:{KITTI}", FileNotFoundError, r"no \*\.npz", marks=SAMPLES),
     ],
 )
 def test_bad_specs_say_what_was_expected(spec: str, error: type[Exception], says: str) -> None:
@@ -192,6 +202,7 @@ def test_bad_specs_say_what_was_expected(spec: str, error: type[Exception], says
     assert spec.split(":")[0] in str(info.value)
 
 
+@pytest.mark.samples
 def test_kitti_scan_without_labels_is_an_error(tmp_path: Path) -> None:
     (tmp_path / "velodyne").mkdir()
     read_scan(KITTI / "velodyne" / "000003.bin").points.tofile(tmp_path / "velodyne" / "000003.bin")

@@ -25,6 +25,7 @@ def rows(sectors) -> np.ndarray:
     return np.concatenate([s.points[:, -1] for s in sectors]).astype(np.int64)
 
 
+@pytest.mark.samples
 @pytest.mark.parametrize(("spin", "order"), [(Spin.CCW, [2, 3, 0, 1]), (Spin.CW, [2, 1, 0, 3])])
 def test_split_scan_partitions_a_kitti_scan_in_sweep_order(spin: Spin, order: list[int]) -> None:
     scan = kitti_scan(0).numpy()  # starts at azimuth ~0 deg: sector 2 of 4
@@ -42,6 +43,7 @@ def test_split_scan_partitions_a_kitti_scan_in_sweep_order(spin: Spin, order: li
         assert np.array_equal(np.sort(s.points[:, :4], axis=0), np.sort(model_split[s.index].numpy(), axis=0))
 
 
+@pytest.mark.samples
 def test_fields_in_any_order_and_missing_fields() -> None:
     scan = kitti_scan(1).numpy()[:1000]
     shuffled = scan[:, [3, 0, 2, 1]]  # intensity, x, z, y
@@ -106,6 +108,7 @@ def test_skipped_sectors_are_emitted_empty() -> None:
     assert [s.index for s in sec.flush()] == [2]
 
 
+@pytest.mark.samples
 def test_nuscenes_sweep_packet_by_packet() -> None:
     """Real firing-order data: nuScenes LIDAR_TOP (32 beams, azimuth decreasing), 12 firings a packet."""
     path = next((SHARED_DATA / "nuscenes_sample").glob("*.pcd.bin"))

@@ -88,12 +88,14 @@ def _velodyne_table(name: str) -> np.ndarray:
     return np.sort(np.degrees([laser["vert_correction"] for laser in lasers]))[::-1]
 
 
+@pytest.mark.samples
 @pytest.mark.parametrize("table", ["64e_s3-xiesc.yaml", "64e_utexas.yaml"])
 def test_hdl64e_preset_matches_real_tables(table):
     error = np.abs(sensor_spec(Sensor.HDL64E).elevations_deg - _velodyne_table(table)).max()
     assert error < 0.3, f"{table}: max error {error:.3f} deg"
 
 
+@pytest.mark.samples
 def test_waymo_top_preset_matches_the_calibration():
     top = json.loads(WAYMO_CALIBRATION.read_text())["lasers"]["TOP"]
     real = np.degrees(top["beam_inclinations_rad_ascending"])[::-1]
@@ -101,6 +103,7 @@ def test_waymo_top_preset_matches_the_calibration():
     assert len(real) == 64 and error < 0.1, f"max error {error:.3f} deg"
 
 
+@pytest.mark.samples
 def test_hdl32e_preset_matches_the_nuscenes_rings():
     p = np.fromfile(NUSCENES_SCAN, dtype=np.float32).reshape(-1, 5)
     r = np.hypot(p[:, 0], p[:, 1])
@@ -110,6 +113,7 @@ def test_hdl32e_preset_matches_the_nuscenes_rings():
     assert np.abs(sensor_spec(Sensor.HDL32E).elevations_deg - real).max() < 0.4
 
 
+@pytest.mark.samples
 def test_elevation_tables_load_from_files(tmp_path):
     yaml_table = load_elevations(HDL64E_TABLES / "64e_s3-xiesc.yaml")
     assert np.allclose(yaml_table, _velodyne_table("64e_s3-xiesc.yaml"))
