@@ -1,29 +1,32 @@
 # PHiM detection server, GPU image. Build: docker build -t phim-server .
 # Run:   docker run --gpus all -p 8080:8080 -p 7447:7447 -e PHIM_ZENOH_LISTEN=tcp/0.0.0.0:7447 phim-server
-# The CUDA build of PyTorch comes from the base image; `pip install` keeps it (constraints file) and adds the
-# server dependencies only.
-FROM pytorch/pytorch:2.5.1-cuda12.4-cudnn9-runtime
+# The one place the image's torch and CUDA versions are named: the base image, whose CUDA build of PyTorch the
+# install keeps. Every other dependency is pinned by constraints.txt (scripts/lock.sh), as in CI.
+ARG BASE_IMAGE=pytorch/pytorch:2.5.1-cuda12.4-cudnn9-runtime
+FROM ${BASE_IMAGE}
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 
-# Triton (the GPU scan and sparse-conv kernels, model/*_triton.py) builds each kernel's launcher with the
+# Triton (the GPU scan and sparse-conv kernels, model/ops/*_triton.py) builds each kernel's launcher with the
 # system C compiler at first use; the runtime base image has none (without one the torch paths run instead).
 RUN apt-get update \
  && apt-get install -y --no-install-recommends gcc libc6-dev \
  && rm -rf /var/lib/apt/lists/*
 
 WORKDIR /opt/phim
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md LICENSE constraints.txt ./
+COPY contract ./contract
+COPY phim ./phim
 COPY model ./model
 COPY server ./server
 COPY clients ./clients
 
-# Install the package and its server extras without touching the base image's torch.
+# Install the package and its server extras at the pinned versions, without touching the base image's torch.
 RUN pip freeze | grep -i '^torch==' > /tmp/torch-constraint.txt \
- && pip install -c /tmp/torch-constraint.txt ".[server]" \
+ && pip install -c constraints.txt -c /tmp/torch-constraint.txt ".[server]" \
  && python -c "import torch, fastapi, zenoh; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
 
 # Weights inside the image: the shipped default model (model/weights/tiny-sim.pt) as a checkpoint file.

@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import httpx
@@ -32,14 +33,19 @@ BIN = Path(sys.executable).parent
 
 
 def instructions() -> list[tuple[str, str]]:
-    """Dockerfile -> [(INSTRUCTION, arguments)], continuation lines joined, comments dropped."""
+    """Dockerfile -> [(INSTRUCTION, arguments)], continuation lines joined, comments dropped, ${ARG}s replaced
+    by their defaults."""
     text = re.sub(r"\\\n", " ", DOCKERFILE.read_text())
-    out = []
+    out, args = [], {}
     for line in text.splitlines():
         line = line.strip()
         if line and not line.startswith("#"):
             word, _, rest = line.partition(" ")
-            out.append((word.upper(), rest.strip()))
+            rest = re.sub(r"\$\{(\w+)\}", lambda m: args[m[1]], rest.strip())
+            if word.upper() == "ARG":
+                name, _, default = rest.partition("=")
+                args[name] = default
+            out.append((word.upper(), rest))
     return out
 
 
@@ -61,6 +67,11 @@ def test_dockerfile_essentials():
     assert words.index("USER") < words.index("CMD")
     runs = " ".join(rest for w, rest in ins if w == "RUN")
     assert '".[server]"' in runs and "torch-constraint" in runs  # never reinstalls the base image's torch
+    assert "-c constraints.txt" in runs  # the pinned versions CI runs with
+    copied = {rest.split()[0] for w, rest in ins if w == "COPY"}
+    packages = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    assert {p.rstrip("*") for p in packages["include"]} <= copied  # every package of the project is in the image
+    assert "constraints.txt" in " ".join(rest for w, rest in ins if w == "COPY")
     assert "python -m server.default_model --out" in runs  # weights inside
     assert re.search(r"apt-get install .*\bgcc\b", runs)  # Triton builds its kernel launchers with it
     health = dict(ins)["HEALTHCHECK"]
