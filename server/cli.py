@@ -81,10 +81,9 @@ def run_server(settings: Settings) -> None:
     import uvicorn
 
     from server.app import create_app
+    from server.logs import configure_logging
 
-    logging.basicConfig(
-        level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True
-    )
+    configure_logging(settings.log_level, settings.log_format)
     if settings.threads:
         torch.set_num_threads(settings.threads)
     logging.getLogger("phim.serve").info(
@@ -101,6 +100,7 @@ def run_server(settings: Settings) -> None:
         port=settings.port,
         log_config=None,
         log_level=settings.log_level,
+        access_log=settings.access_log,
         ws="none",
         lifespan="on",
         timeout_graceful_shutdown=max(1, round(settings.drain_timeout_s)),

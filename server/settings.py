@@ -75,6 +75,11 @@ class Settings(BaseSettings):
         default_factory=default_worker_id, description="This worker's ID [default: host-pid]."
     )
     log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="Log level.")
+    log_format: Literal["text", "json"] = Field(
+        "text",
+        description="Logs on stderr: text lines, or JSON lines (time, level, logger, message, exception).",
+    )
+    access_log: bool = Field(False, description="uvicorn's access log: a line per HTTP request.")
 
     @field_validator("zenoh_listen", "zenoh_connect", mode="before")
     @classmethod
@@ -83,7 +88,7 @@ class Settings(BaseSettings):
             return tuple(v.strip() for v in value.split(",") if v.strip())
         return value
 
-    @field_validator("log_level", mode="before")
+    @field_validator("log_level", "log_format", mode="before")
     @classmethod
     def _lower(cls, value: Any) -> Any:
         return value.lower() if isinstance(value, str) else value

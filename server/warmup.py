@@ -12,6 +12,7 @@ import torch
 
 from contract import POINT_FIELDS
 from model.data.synthetic import synthetic_turn
+from model.ops.scan import resolve_scan
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 
@@ -50,7 +51,8 @@ def model_info(det: StreamingDetector, source: str, worker_id: str) -> dict[str,
         "config": cfg.name,
         "weights": source,
         "device": str(det.device),
-        "scan": cfg.backbone.mamba.scan.value,
+        "scan": cfg.backbone.mamba.scan.value,  # as configured (auto: the best available)
+        "scan_impl": resolve_scan(cfg.backbone.mamba.scan, det.device).value,  # what runs on this device
         "classes": list(cfg.head.class_names),
         "sectors_per_turn": cfg.sectors_per_turn,
         "buffer_sectors": cfg.buffer_sectors,

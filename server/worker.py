@@ -78,6 +78,7 @@ class Worker:
         self._thread: threading.Thread | None = None
         self.metrics.bind(lambda: self._depth, lambda: len(self.table))
         self.metrics.max_streams.set(cfg.max_streams)
+        self.metrics.max_queued.set(cfg.queue_size)
 
     # ------------------------------------------------------------------------------------ public surface
 
@@ -265,6 +266,7 @@ class Worker:
     def _run(self) -> None:
         try:
             self._det, self._source = self._load()
+            self.metrics.model_loaded(self.model_info())
             self._batch_s = warm_up(self._det, self.cfg.warmup_sectors)
         except Exception as e:
             log.exception("loading or warming up the model failed; the worker will never be ready")
@@ -362,7 +364,7 @@ class Worker:
             why = f"model failed on this batch of {len(batch)}: {type(e).__name__}: {e}"
             outcomes = [(p.future, p.transport, ServiceError(ErrorCode.INTERNAL, why)) for p in batch]
         self._batch_s = 0.8 * self._batch_s + 0.2 * model_s
-        self.metrics.batch_size.observe(len(batch))
+        self.metrics.batch_sectors.observe(len(batch))
         with self._cond:
             for i, p in enumerate(batch):
                 self._finish(p, None if new_states is None else new_states[i], gaps[i])
@@ -407,8 +409,15 @@ class Worker:
         )
 
     def _settle(self, answers: list[Answer]) -> None:
-        """Outside the lock: give each sector its one answer and count it."""
+        """Outside the lock: count each sector (before its answer: a client that has it sees it counted) and
+        give it its one answer."""
         for fut, transport, out in answers:
+            self.metrics.count(transport, OK if isinstance(out, DetectionsReply) else out.code.value)
+            if isinstance(out, DetectionsReply):
+                t = out.timings
+                self.metrics.queue_latency.observe(t.queue_ms / 1e3)
+                self.metrics.model_latency.observe(t.model_ms / 1e3)
+                self.metrics.sector_latency.observe(t.total_ms / 1e3)
             try:
                 if isinstance(out, ServiceError):
                     fut.set_exception(out)
@@ -416,9 +425,3 @@ class Worker:
                     fut.set_result(out)
             except InvalidStateError:  # the caller cancelled (client went away); the sector still counted
                 pass
-            self.metrics.count(transport, OK if isinstance(out, DetectionsReply) else out.code.value)
-            if isinstance(out, DetectionsReply):
-                t = out.timings
-                self.metrics.queue_latency.observe(t.queue_ms / 1e3)
-                self.metrics.model_latency.observe(t.model_ms / 1e3)
-                self.metrics.total_latency.observe(t.total_ms / 1e3)

@@ -112,7 +112,7 @@ def test_info_endpoints(server):
     assert model["sectors_per_turn"] == 4 and model["point_fields"] == ["x", "y", "z", "intensity"]
     assert httpx.get(f"{server.url}/health/live").json()["status"] == "live"
     assert httpx.get(f"{server.url}/health/ready").json() == {"status": "ready", "worker_id": "test-worker"}
-    assert "phim_batch_size_bucket" in httpx.get(f"{server.url}/metrics").text
+    assert "phim_batch_sectors_bucket" in httpx.get(f"{server.url}/metrics").text
 
 
 def test_every_bad_input_gets_its_error_and_harms_no_stream(server, scan, ref):
@@ -149,7 +149,7 @@ def test_every_bad_input_gets_its_error_and_harms_no_stream(server, scan, ref):
     for i in (2, 3):  # the victim stream goes on exactly as if nothing had happened
         r = detections(post(url, "victim", i, scan[i]))
         assert_same_boxes(r.boxes, r.scores, r.labels, ref[i])
-    assert metric(url, 'phim_requests_total{outcome="invalid_field"') >= 5
+    assert metric(url, 'phim_sectors_total{outcome="invalid_field"') >= 5
 
 
 def test_body_over_the_limit_is_refused_before_and_while_reading(server):
@@ -185,7 +185,7 @@ def test_two_streams_interleaved_over_http_equal_each_alone(det, monkeypatch, sc
             blocker = pool.submit(post, s.url, "z", 0, scan[0])
             assert gate.entered.wait(30)
             first = [pool.submit(post, s.url, "a", 0, scan[0]), pool.submit(post, s.url, "b", 0, scan_b[0])]
-            wait_for(lambda: metric(s.url, "phim_queue_depth") == 2)
+            wait_for(lambda: metric(s.url, "phim_queued_sectors") == 2)
             gate.release()
             detections(blocker.result())
             replies = [[detections(f.result())] for f in first]
@@ -226,8 +226,8 @@ def test_overload_is_503_with_retry_after_and_nothing_is_lost(det, monkeypatch, 
             assert int(r.headers["Retry-After"]) >= 1
         assert sorted(r.status_code for r in responses) == [200] * 3 + [503] * 5
         detections(post(s.url, "s1", 1, small, index=1))  # recovered
-        assert metric(s.url, 'phim_requests_total{outcome="ok",transport="http"}') == 4
-        assert metric(s.url, 'phim_requests_total{outcome="overloaded",transport="http"}') == 5
+        assert metric(s.url, 'phim_sectors_total{outcome="ok",transport="http"}') == 4
+        assert metric(s.url, 'phim_sectors_total{outcome="overloaded",transport="http"}') == 5
 
 
 def test_deadline_is_504_and_a_failed_batch_is_500(det, monkeypatch, scan):
@@ -239,7 +239,7 @@ def test_deadline_is_504_and_a_failed_batch_is_500(det, monkeypatch, scan):
             blocker = pool.submit(post, s.url, "z", 0, small)
             assert gate.entered.wait(30)
             late = pool.submit(post, s.url, "car", 0, small)
-            wait_for(lambda: metric(s.url, "phim_queue_depth") == 1)
+            wait_for(lambda: metric(s.url, "phim_queued_sectors") == 1)
             time.sleep(0.25)
             gate.release()
             detections(blocker.result())
@@ -279,7 +279,7 @@ def test_shutdown_answers_everything_in_flight(det, monkeypatch, scan):
             futs = [pool.submit(post, s.url, "s0", 0, small)]
             assert gate.entered.wait(30)  # s0's forward is held; the next two queue behind it
             futs += [pool.submit(post, s.url, f"s{i}", 0, small) for i in (1, 2)]
-            wait_for(lambda: metric(s.url, "phim_queue_depth") == 2)
+            wait_for(lambda: metric(s.url, "phim_queued_sectors") == 2)
             stopper = threading.Thread(target=s.stop)
             stopper.start()  # uvicorn stops accepting, waits for the requests in flight
             time.sleep(0.2)

@@ -52,7 +52,7 @@ def err(fut: Future) -> ServiceError:
 def answered(w: Worker) -> dict[str, float]:
     return {
         s.labels["outcome"]: s.value
-        for m in w.metrics.requests.collect()
+        for m in w.metrics.sectors.collect()
         for s in m.samples
         if s.name.endswith("_total")
     }

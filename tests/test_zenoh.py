@@ -383,4 +383,4 @@ def test_app_serves_zenoh_like_http(det: StreamingDetector, scan_a: list[np.ndar
         # a sector rejected before it reaches the worker is counted in the app's metrics too
         is_error(ask(c, "via-zenoh", b"\xc1garbage"), ErrorCode.BAD_REQUEST, "body")
         metrics = httpx.get(f"{server.url}/metrics", timeout=GET_TIMEOUT_S).text
-        assert 'phim_requests_total{outcome="bad_request",transport="zenoh"} 1.0' in metrics
+        assert 'phim_sectors_total{outcome="bad_request",transport="zenoh"} 1.0' in metrics
