@@ -209,7 +209,7 @@ def paper() -> PHiMConfig:
 def tiny() -> PHiMConfig:
     """Same architecture, sized for real time on a 2-core CPU: a light Mamba (d_state 4, expand 1, one decay
     per channel: `shared_decay`) and the axis + direction yaw code. (Until 2026-11-23 `tiny` had d_state 8,
-    expand 2, a decay per state and the sin/cos yaw code; docs/model-card.md.)"""
+    expand 2, a decay per state and the sin/cos yaw code; docs/history/model-card.md.)"""
     return PHiMConfig(
         name="tiny",
         grid=PolarGridConfig(

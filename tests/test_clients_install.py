@@ -4,6 +4,7 @@ no torch, and its `phim loadtest`, `phim replay`, Python clients and sectorizer 
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +18,7 @@ from contract import REQUIRED_FIELDS
 from model.data.readers import write_native_scan
 from model.data.synthetic import synthetic_turn
 
-CONSTRAINTS = REPO / "constraints.txt"
+SOURCES = ("pyproject.toml", "README.md", "LICENSE", "contract", "phim", "model", "server", "clients")
 CLIENT_CODE = """
 from clients.http_client import HttpClient
 from clients.sectorizer import split_scan
@@ -38,12 +39,17 @@ def run(*cmd: str | Path, timeout: float = 120) -> subprocess.CompletedProcess[s
 
 @pytest.fixture(scope="module")
 def venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A fresh virtual environment with the package's `clients` extra, installed from this checkout."""
-    root = tmp_path_factory.mktemp("clients-venv")
+    """A fresh virtual environment with the package's `clients` extra, installed from a copy of this checkout
+    (pip builds in the source tree: the copy keeps build/ out of the repository)."""
+    root, source = tmp_path_factory.mktemp("clients-venv"), tmp_path_factory.mktemp("source")
+    for name in SOURCES:
+        if (REPO / name).is_dir():
+            shutil.copytree(REPO / name, source / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(REPO / name, source / name)
     run(sys.executable, "-m", "venv", root)
-    pins = ["-c", CONSTRAINTS] if CONSTRAINTS.is_file() else []
     pip = [root / "bin" / "python", "-m", "pip", "install", "-q", "--disable-pip-version-check"]
-    run(*pip, *pins, f"{REPO}[clients]", timeout=900)
+    run(*pip, "-c", REPO / "constraints.txt", f"{source}[clients]", timeout=900)
     return root
 
 
