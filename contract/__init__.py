@@ -1,22 +1,41 @@
 """The wire contract between the server and its clients, owned by neither: sectors in, detections or errors
-out (msgpack), the limits, the error codes, the zenoh key space, the point fields and the media types.
+out (msgpack, or JSON over HTTP), the limits, the error codes, the zenoh key space, the point fields and the
+media types.
 
-Arrays travel as maps {"dtype": "<f4", "shape": [N, C], "data": <raw little-endian bytes>}: never pickle,
-never lists of floats, never msgpack extension types. Decoding is strict and every failure is a
-`ServiceError` whose message names the field and says what was expected. numpy + msgpack only (no torch):
-a client needs nothing else. See docs/protocol.md.
+The messages are msgspec Structs (contract/wire.py), decoded by typed decoders that refuse unknown keys; the
+server's `Limits` are checked after decoding. Arrays travel as maps {"dtype": "<f4", "shape": [N, C],
+"data": <raw little-endian bytes>}: msgpack bin (base64 in JSON), never pickle, never lists of floats in
+msgpack, never msgpack extension types. Every failure is a `ServiceError` whose message names the field
+and says what was expected. numpy + msgspec only (no torch): a client needs nothing else. See
+docs/protocol.md.
 """
 
 from __future__ import annotations
 
-import enum
 import math
 import re
 from dataclasses import dataclass
 from typing import Any, NoReturn
 
-import msgpack
+import msgspec
 import numpy as np
+from msgspec import UNSET, UnsetType
+
+from contract.keys import DEFAULT_KEY_PREFIX as DEFAULT_KEY_PREFIX
+from contract.keys import KeySpace as KeySpace
+from contract.wire import INT64_MAX as INT64_MAX
+from contract.wire import MAX_LIST_LEN as MAX_LIST_LEN
+from contract.wire import (
+    STREAM_ID_PATTERN,
+    ErrorCode,
+    JsonDetections,
+    WireArray,
+    WireDetections,
+    WireError,
+    WireSector,
+    WireTimings,
+    violation,
+)
 
 POINT_DTYPE = "<f4"
 # the point columns a sector may carry, in the order the model reads them; each sector starts with the first 4
@@ -24,23 +43,8 @@ POINT_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity", "elongation")
 REQUIRED_FIELDS: tuple[str, ...] = POINT_FIELDS[:4]
 MSGPACK = "application/msgpack"  # the sector and reply media type (HTTP Content-Type, zenoh encoding)
 MSGPACK_TYPES = (MSGPACK, "application/x-msgpack", "application/vnd.msgpack")  # accepted as the same
-JSON = "application/json"
-STREAM_ID_RE = re.compile(r"[A-Za-z0-9_.\-]+")
-INT64_MAX = 2**63 - 1
-SECTOR_KEYS = ("stream_id", "seq", "sector_index", "timestamp_ns", "points", "fields", "reset")
-ARRAY_KEYS = ("dtype", "shape", "data")
-
-
-class ErrorCode(enum.StrEnum):
-    BAD_REQUEST = "bad_request"  # undecodable body                      HTTP 400
-    TOO_LARGE = "too_large"  # body / points / strings over limit         HTTP 413
-    INVALID_FIELD = "invalid_field"  # a field has a wrong type/value     HTTP 422
-    STALE_SEQUENCE = "stale_sequence"  # seq <= last seq of the stream    HTTP 409
-    UNKNOWN_STREAM = "unknown_stream"  #                                  HTTP 404
-    OVERLOADED = "overloaded"  # queue full / stream table full           HTTP 503 + Retry-After
-    NOT_READY = "not_ready"  # warming up / shutting down                 HTTP 503
-    DEADLINE_EXCEEDED = "deadline_exceeded"  # waited past its deadline   HTTP 504
-    INTERNAL = "internal"  # model failure for this batch                 HTTP 500
+JSON = "application/json"  # HTTP only: the same messages, bytes as base64
+STREAM_ID_RE = re.compile(STREAM_ID_PATTERN)
 
 
 HTTP_STATUS: dict[ErrorCode, int] = {
@@ -70,44 +74,6 @@ class ServiceError(Exception):
 
     def __repr__(self) -> str:
         return f"ServiceError({self.code.value!r}, {self.message!r}, field={self.field!r})"
-
-
-DEFAULT_KEY_PREFIX = "phim/v1"
-
-
-@dataclass(frozen=True)
-class KeySpace:
-    """The key expressions under one prefix."""
-
-    prefix: str = DEFAULT_KEY_PREFIX
-
-    @property
-    def sector_queryable(self) -> str:  # request/reply: get with a sector as payload
-        return f"{self.prefix}/streams/*/sector"
-
-    @property
-    def sector_subscriber(self) -> str:  # pub/sub: put a sector
-        return f"{self.prefix}/streams/*/sectors"
-
-    def sector(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/sector"
-
-    def sectors(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/sectors"
-
-    def detections(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/detections"
-
-    def errors(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/errors"
-
-    def worker(self, worker_id: str) -> str:
-        return f"{self.prefix}/workers/{worker_id}"
-
-    def stream_id_of(self, key: str) -> str:
-        """The stream-ID chunk of `{prefix}/streams/{id}/...` ('' if the key has another shape)."""
-        head = f"{self.prefix}/streams/"
-        return key[len(head) :].split("/", 1)[0] if key.startswith(head) else ""
 
 
 @dataclass(frozen=True)
@@ -163,71 +129,67 @@ class ErrorReply:
         return ErrorReply(e.code, e.message, e.field, stream_id, seq, e.retry_after_s)
 
 
-# ----------------------------------------------------------------------------------------------- helpers
+# the keys of a sector's maps, named when a body has an unknown one
+_SECTOR_MAPS = {"body": WireSector.__struct_fields__, "points": WireArray.__struct_fields__}
+
+
+def _numpy_scalar(obj: Any) -> Any:  # the encoders' hook: numpy scalars (np.int64, np.float32) as Python's
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise NotImplementedError(f"cannot encode {type(obj).__name__}")
+
+
+class _Format:
+    """A wire format: its codec (msgspec.msgpack or msgspec.json), encoder, and typed decoders."""
+
+    def __init__(self, name: str, codec: Any, detections: type) -> None:
+        self.name, self.codec = name, codec
+        self.encoder = codec.Encoder(enc_hook=_numpy_scalar)
+        self.sector = codec.Decoder(WireSector)
+        self.response = codec.Decoder(detections | WireError)
+
+
+_MSGPACK = _Format("msgpack", msgspec.msgpack, WireDetections)
+_JSON = _Format("JSON", msgspec.json, JsonDetections)  # replies in JSON: arrays as lists
+
+
+def _format(media_type: str) -> _Format:
+    if media_type == JSON:
+        return _JSON
+    if media_type in MSGPACK_TYPES:
+        return _MSGPACK
+    raise ValueError(f"media type {media_type!r}; expected {JSON!r} or one of {list(MSGPACK_TYPES)}")
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+
+
+def _error(code: ErrorCode, field: str | None, message: str) -> ServiceError:
+    return ServiceError(code, f"{field}: {message}" if field else message, field)
 
 
 def _fail(code: ErrorCode, field: str | None, message: str) -> NoReturn:
-    raise ServiceError(code, f"{field}: {message}" if field else message, field)
+    raise _error(code, field, message)
 
 
-def _reject_ext(code: int, data: bytes) -> NoReturn:
-    raise ValueError(f"msgpack extension type {code} is not allowed")
-
-
-def _unpack(data: bytes, limits: Limits, max_array_len: int | None = None) -> Any:
+def _decode(fmt: _Format, decoder: Any, data: bytes, limits: Limits, maps: dict[str, tuple[str, ...]]) -> Any:
     if not isinstance(data, bytes | bytearray | memoryview):
         _fail(ErrorCode.BAD_REQUEST, "body", f"got {type(data).__name__}; expected bytes")
     if len(data) > limits.max_body_bytes:
         _fail(ErrorCode.TOO_LARGE, "body", f"{len(data)} bytes; the limit is {limits.max_body_bytes}")
     try:
-        return msgpack.unpackb(
-            data,
-            raw=False,
-            strict_map_key=True,
-            ext_hook=_reject_ext,
-            max_bin_len=limits.max_body_bytes,
-            max_str_len=max(limits.max_string_len, 1024) * 4,
-            max_array_len=max_array_len or max(limits.max_fields, 8) * 8,
-            max_map_len=64,
-        )
-    except Exception as e:  # msgpack raises ValueError, TypeError, ExtraData, FormatError, StackError...
-        if isinstance(e, ValueError) and " exceeds max_" in str(e):
-            _fail(ErrorCode.TOO_LARGE, "body", f"a string, array or map over the limit ({e})")
-        _fail(ErrorCode.BAD_REQUEST, "body", f"not a valid msgpack message ({type(e).__name__}: {e})")
-
-
-def _map(obj: Any, field: str, keys: tuple[str, ...]) -> dict[str, Any]:
-    if not isinstance(obj, dict):
-        _fail(ErrorCode.INVALID_FIELD, field, f"got {_kind(obj)}; expected a map with keys {list(keys)}")
-    unknown = sorted(set(obj) - set(keys))
-    if unknown:
-        _fail(ErrorCode.INVALID_FIELD, field, f"unknown keys {unknown}; expected only {list(keys)}")
-    return obj
-
-
-def _kind(obj: Any) -> str:
-    return {dict: "a map", list: "an array", str: "a string", bytes: "binary"}.get(
-        type(obj), type(obj).__name__
-    )
-
-
-def _required(obj: dict[str, Any], key: str, prefix: str = "") -> Any:
-    if key not in obj:
-        _fail(ErrorCode.INVALID_FIELD, prefix + key, "missing; it is required")
-    return obj[key]
-
-
-def _int(value: Any, field: str, lo: int = 0, hi: int = INT64_MAX) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        _fail(ErrorCode.INVALID_FIELD, field, f"got {_kind(value)}; expected an integer in [{lo}, {hi}]")
-    if not lo <= value <= hi:
-        _fail(ErrorCode.INVALID_FIELD, field, f"got {value}; expected an integer in [{lo}, {hi}]")
-    return value
+        try:
+            return decoder.decode(data)
+        except msgspec.ValidationError as e:
+            fmt.codec.decode(data, type=msgspec.Raw)  # a malformed body (trailing bytes) is told first
+            raise _error(*violation(e, maps)) from None
+    except msgspec.DecodeError as e:
+        _fail(ErrorCode.BAD_REQUEST, "body", f"not a valid {fmt.name} message ({e})")
 
 
 def _str(value: Any, field: str, limits: Limits) -> str:
     if not isinstance(value, str):
-        _fail(ErrorCode.INVALID_FIELD, field, f"got {_kind(value)}; expected a string")
+        _fail(ErrorCode.INVALID_FIELD, field, f"got {type(value).__name__}; expected a string")
     if len(value) > limits.max_string_len:
         _fail(ErrorCode.TOO_LARGE, field, f"{len(value)} characters; the limit is {limits.max_string_len}")
     return value
@@ -241,214 +203,198 @@ def check_stream_id(value: Any, limits: Limits = Limits(), field: str = "stream_
     return value
 
 
-def _fields(value: Any, limits: Limits) -> tuple[str, ...]:
-    if not isinstance(value, list):
-        _fail(ErrorCode.INVALID_FIELD, "fields", f"got {_kind(value)}; expected an array of column names")
-    if len(value) > limits.max_fields:
-        _fail(ErrorCode.TOO_LARGE, "fields", f"{len(value)} names; the limit is {limits.max_fields}")
-    names = tuple(_str(v, f"fields[{i}]", limits) for i, v in enumerate(value))
-    if names[:4] != REQUIRED_FIELDS:
-        _fail(
-            ErrorCode.INVALID_FIELD,
-            "fields",
-            f"{list(names)}; expected to start with {list(REQUIRED_FIELDS)}",
-        )
-    if len(set(names)) != len(names) or not all(names):
-        _fail(ErrorCode.INVALID_FIELD, "fields", f"{list(names)}; expected unique non-empty names")
-    return names
+def _stream_id(in_body: str | UnsetType, in_key: str | None, limits: Limits) -> str:
+    if in_key is None:
+        if in_body is UNSET:
+            _fail(ErrorCode.INVALID_FIELD, "stream_id", "missing; it is required")
+        return check_stream_id(in_body, limits)
+    in_key = check_stream_id(in_key, limits)
+    if in_body is not UNSET and in_body != in_key:
+        body_id = check_stream_id(in_body, limits)
+        _fail(ErrorCode.INVALID_FIELD, "stream_id", f"{body_id!r} in the body but {in_key!r} in the key")
+    return in_key
 
 
-def _points(value: Any, n_fields: int, limits: Limits) -> np.ndarray:
-    arr = _map(value, "points", ARRAY_KEYS)
-    dtype = _required(arr, "dtype", "points.")
-    if dtype != POINT_DTYPE:
-        _fail(ErrorCode.INVALID_FIELD, "points.dtype", f"{dtype!r}; expected {POINT_DTYPE!r} (float32 LE)")
-    shape = _required(arr, "shape", "points.")
-    if not isinstance(shape, list) or len(shape) != 2:
-        _fail(ErrorCode.INVALID_FIELD, "points.shape", f"{shape!r}; expected [N, C] (two integers)")
-    n = _int(shape[0], "points.shape[0]")
-    c = _int(shape[1], "points.shape[1]", lo=4, hi=limits.max_fields)
+def _fields(names: list[str], limits: Limits) -> tuple[str, ...]:
+    if len(names) > limits.max_fields:
+        _fail(ErrorCode.TOO_LARGE, "fields", f"{len(names)} names; the limit is {limits.max_fields}")
+    fields = tuple(_str(v, f"fields[{i}]", limits) for i, v in enumerate(names))
+    if fields[:4] != REQUIRED_FIELDS:
+        _fail(ErrorCode.INVALID_FIELD, "fields", f"{names}; expected to start with {list(REQUIRED_FIELDS)}")
+    if len(set(fields)) != len(fields) or not all(fields):
+        _fail(ErrorCode.INVALID_FIELD, "fields", f"{names}; expected unique non-empty names")
+    return fields
+
+
+def _dtype(arr: WireArray, field: str, dtype: str) -> None:
+    if arr.dtype != dtype:
+        _fail(ErrorCode.INVALID_FIELD, f"{field}.dtype", f"{arr.dtype!r}; expected {dtype!r}")
+
+
+def _view(arr: WireArray, field: str, shape: tuple[int, ...]) -> np.ndarray:
+    """The array's bytes as a numpy view of `shape` (read-only when `data` is), after checking their size."""
+    nbytes = math.prod(shape) * np.dtype(arr.dtype).itemsize
+    if len(arr.data) != nbytes:
+        message = f"{len(arr.data)} bytes; shape {list(shape)} needs {nbytes}"
+        _fail(ErrorCode.INVALID_FIELD, f"{field}.data", message)
+    return np.frombuffer(arr.data, dtype=arr.dtype).reshape(shape)
+
+
+def _points(arr: WireArray, n_fields: int, limits: Limits) -> np.ndarray:  # -> (N, C) float32
+    _dtype(arr, "points", POINT_DTYPE)
+    if len(arr.shape) != 2:
+        _fail(ErrorCode.INVALID_FIELD, "points.shape", f"{arr.shape}; expected [N, C] (two integers)")
+    n, c = arr.shape
+    if not 4 <= c <= limits.max_fields:
+        message = f"got {c}; expected an integer in [4, {limits.max_fields}]"
+        _fail(ErrorCode.INVALID_FIELD, "points.shape[1]", message)
     if c != n_fields:
         _fail(ErrorCode.INVALID_FIELD, "points.shape[1]", f"{c} columns but {n_fields} names in fields")
     if n > limits.max_points:
         _fail(ErrorCode.TOO_LARGE, "points", f"{n} points; the limit is {limits.max_points}")
-    data = _required(arr, "data", "points.")
-    if not isinstance(data, bytes):
-        _fail(ErrorCode.INVALID_FIELD, "points.data", f"got {_kind(data)}; expected binary (raw bytes)")
-    if len(data) != n * c * 4:
-        _fail(ErrorCode.INVALID_FIELD, "points.data", f"{len(data)} bytes; shape {[n, c]} needs {n * c * 4}")
-    return np.frombuffer(data, dtype=POINT_DTYPE).reshape(n, c)
+    return _view(arr, "points", (n, c))
 
 
 # ------------------------------------------------------------------------------------------------ sectors
 
 
+def _wire_array(a: np.ndarray) -> WireArray:
+    """An array with explicit little-endian dtype, its C-order bytes as a view (encoded without a copy)."""
+    a = np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("<"))
+    return WireArray(a.dtype.str, list(a.shape), memoryview(a.reshape(-1).view(np.uint8)))
+
+
 def array_to_wire(a: np.ndarray) -> dict[str, Any]:
     """An array -> {"dtype", "shape", "data"} with explicit little-endian dtype and C-order bytes (a view)."""
-    a = np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("<"))
-    data = memoryview(a.reshape(-1).view(np.uint8))  # msgpack packs it as bin without a copy first
-    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": data}
+    return msgspec.structs.asdict(_wire_array(a))
 
 
-def encode_sector(msg: SectorMessage) -> bytes:
+def encode_sector(msg: SectorMessage, media_type: str = MSGPACK) -> bytes:
     points = np.ascontiguousarray(msg.points, dtype=POINT_DTYPE)
     if points.ndim != 2 or points.shape[1] != len(msg.fields):
         raise ValueError(f"points: shape {points.shape}; expected (N, {len(msg.fields)}) to match fields")
-    body = {
-        "stream_id": msg.stream_id,
-        "seq": int(msg.seq),
-        "sector_index": int(msg.sector_index),
-        "timestamp_ns": int(msg.timestamp_ns),
-        "points": array_to_wire(points),
-        "fields": list(msg.fields),
-        "reset": bool(msg.reset),
-    }
-    return msgpack.packb(body, use_bin_type=True)
+    body = WireSector(
+        stream_id=msg.stream_id,
+        seq=msg.seq,
+        sector_index=msg.sector_index,
+        timestamp_ns=msg.timestamp_ns,
+        points=_wire_array(points),
+        fields=list(msg.fields),
+        reset=msg.reset,
+    )
+    return _format(media_type).encoder.encode(body)
 
 
-def decode_sector(data: bytes, limits: Limits = Limits(), stream_id: str | None = None) -> SectorMessage:
-    """Bytes -> SectorMessage, or ServiceError naming the field.
+def decode_sector(
+    data: bytes, limits: Limits = Limits(), stream_id: str | None = None, media_type: str = MSGPACK
+) -> SectorMessage:
+    """Bytes (msgpack, or JSON with `media_type=JSON`) -> SectorMessage, or ServiceError naming the field.
 
     `stream_id` (from the URL or the zenoh key) is authoritative: the body's stream_id must be absent or
-    equal.
-    `points` is a read-only view into `data` (no copy).
+    equal. From msgpack bytes `points` is a read-only view into `data` (no copy).
     """
-    obj = _map(_unpack(data, limits), "body", SECTOR_KEYS)
-    if stream_id is not None:
-        stream_id = check_stream_id(stream_id, limits)
-        if obj.get("stream_id", stream_id) != stream_id:
-            body_id = check_stream_id(obj["stream_id"], limits)
-            _fail(
-                ErrorCode.INVALID_FIELD, "stream_id", f"{body_id!r} in the body but {stream_id!r} in the key"
-            )
-    else:
-        stream_id = check_stream_id(_required(obj, "stream_id"), limits)
-    reset = obj.get("reset", False)
-    if not isinstance(reset, bool):
-        _fail(ErrorCode.INVALID_FIELD, "reset", f"got {_kind(reset)}; expected true or false")
-    fields = _fields(_required(obj, "fields"), limits)
+    fmt = _format(media_type)
+    body: WireSector = _decode(fmt, fmt.sector, data, limits, _SECTOR_MAPS)
+    stream_id = _stream_id(body.stream_id, stream_id, limits)
+    fields = _fields(body.fields, limits)
     return SectorMessage(
         stream_id=stream_id,
-        seq=_int(_required(obj, "seq"), "seq"),
-        sector_index=_int(_required(obj, "sector_index"), "sector_index"),
-        timestamp_ns=_int(_required(obj, "timestamp_ns"), "timestamp_ns"),
-        points=_points(_required(obj, "points"), len(fields), limits),
+        seq=body.seq,
+        sector_index=body.sector_index,
+        timestamp_ns=body.timestamp_ns,
+        points=_points(body.points, len(fields), limits),
         fields=fields,
-        reset=reset,
+        reset=body.reset,
     )
 
 
 # ------------------------------------------------------------------------------------------------ replies
 
 
-def encode_reply(r: DetectionsReply) -> bytes:
-    body = {
-        "kind": "detections",
-        "stream_id": r.stream_id,
-        "seq": r.seq,
-        "boxes": array_to_wire(np.asarray(r.boxes, dtype=np.float32).reshape(-1, 7)),
-        "scores": array_to_wire(np.asarray(r.scores, dtype=np.float32)),
-        "labels": array_to_wire(np.asarray(r.labels, dtype=np.int32)),
-        "class_names": list(r.class_names),
-        "context_sectors": r.context_sectors,
-        "gap": r.gap,
-        "timings": _timings_dict(r.timings),
-    }
-    return msgpack.packb(body, use_bin_type=True)
-
-
-def encode_error(e: ErrorReply) -> bytes:
-    return msgpack.packb(error_to_json(e), use_bin_type=True)
-
-
-def _timings_dict(t: Timings) -> dict[str, float]:
-    return {"queue_ms": float(t.queue_ms), "model_ms": float(t.model_ms), "total_ms": float(t.total_ms)}
-
-
-def _array(obj: dict[str, Any], key: str, dtype: str, shape_tail: tuple[int, ...]) -> np.ndarray:
-    arr = _map(_required(obj, key), key, ARRAY_KEYS)
-    if arr.get("dtype") != dtype:
-        _fail(ErrorCode.INVALID_FIELD, f"{key}.dtype", f"{arr.get('dtype')!r}; expected {dtype!r}")
-    shape = arr.get("shape")
-    if not isinstance(shape, list) or len(shape) != 1 + len(shape_tail) or tuple(shape[1:]) != shape_tail:
-        _fail(ErrorCode.INVALID_FIELD, f"{key}.shape", f"{shape!r}; expected [K, *{list(shape_tail)}]")
-    k = _int(shape[0], f"{key}.shape[0]")
-    data = arr.get("data")
-    itemsize = np.dtype(dtype).itemsize * math.prod(shape_tail)
-    if not isinstance(data, bytes) or len(data) != k * itemsize:
-        _fail(ErrorCode.INVALID_FIELD, f"{key}.data", f"expected {k * itemsize} raw bytes")
-    return np.frombuffer(data, dtype=dtype).reshape(k, *shape_tail)
-
-
-def _decode_error(obj: dict[str, Any]) -> ErrorReply:
-    code = _required(obj, "code")
-    try:
-        code = ErrorCode(code)
-    except ValueError:
-        _fail(ErrorCode.INVALID_FIELD, "code", f"{code!r}; expected one of {[c.value for c in ErrorCode]}")
-    retry = obj.get("retry_after_s")
-    return ErrorReply(
-        code=code,
-        message=str(_required(obj, "message")),
-        field=obj.get("field"),
-        stream_id=obj.get("stream_id"),
-        seq=obj.get("seq"),
-        retry_after_s=None if retry is None else float(retry),
+def _reply_keys(r: DetectionsReply) -> dict[str, Any]:  # the keys a reply has in either format
+    return dict(
+        stream_id=r.stream_id,
+        seq=r.seq,
+        class_names=list(r.class_names),
+        context_sectors=r.context_sectors,
+        gap=r.gap,
+        timings=WireTimings(r.timings.queue_ms, r.timings.model_ms, r.timings.total_ms),
     )
 
 
-def decode_response(data: bytes, limits: Limits = Limits()) -> DetectionsReply | ErrorReply:
+def _json_detections(r: DetectionsReply) -> JsonDetections:
+    return JsonDetections(
+        boxes=np.asarray(r.boxes, dtype=np.float64).reshape(-1, 7).tolist(),
+        scores=np.asarray(r.scores, dtype=np.float64).tolist(),
+        labels=np.asarray(r.labels).astype(int).tolist(),
+        **_reply_keys(r),
+    )
+
+
+def _wire_detections(r: DetectionsReply) -> WireDetections:
+    return WireDetections(
+        boxes=_wire_array(np.asarray(r.boxes, dtype=np.float32).reshape(-1, 7)),
+        scores=_wire_array(np.asarray(r.scores, dtype=np.float32)),
+        labels=_wire_array(np.asarray(r.labels, dtype=np.int32)),
+        **_reply_keys(r),
+    )
+
+
+def encode_reply(r: DetectionsReply, media_type: str = MSGPACK) -> bytes:
+    """A reply as msgpack (arrays as raw bytes) or, with `media_type=JSON`, as JSON (arrays as lists)."""
+    fmt = _format(media_type)
+    return fmt.encoder.encode(_json_detections(r) if fmt is _JSON else _wire_detections(r))
+
+
+def _wire_error(e: ErrorReply) -> WireError:
+    return WireError(e.code, e.message, e.field, e.stream_id, e.seq, e.retry_after_s)
+
+
+def encode_error(e: ErrorReply, media_type: str = MSGPACK) -> bytes:
+    return _format(media_type).encoder.encode(_wire_error(e))
+
+
+def _reply_array(arr: WireArray, field: str, dtype: str, tail: tuple[int, ...]) -> np.ndarray:  # (K, *tail)
+    _dtype(arr, field, dtype)
+    if len(arr.shape) != 1 + len(tail) or tuple(arr.shape[1:]) != tail:
+        _fail(ErrorCode.INVALID_FIELD, f"{field}.shape", f"{arr.shape}; expected [K, *{list(tail)}]")
+    return _view(arr, field, tuple(arr.shape))
+
+
+def decode_response(
+    data: bytes, limits: Limits = Limits(), media_type: str = MSGPACK
+) -> DetectionsReply | ErrorReply:
     """A server's reply bytes -> DetectionsReply or ErrorReply (the "kind" key tells which)."""
-    obj = _unpack(data, limits, max_array_len=limits.max_points)
-    if not isinstance(obj, dict):
-        _fail(ErrorCode.BAD_REQUEST, "body", f"got {_kind(obj)}; expected a map")
-    kind = obj.get("kind")
-    if kind == "error":
-        return _decode_error(obj)
-    if kind != "detections":
-        _fail(ErrorCode.INVALID_FIELD, "kind", f"{kind!r}; expected 'detections' or 'error'")
-    boxes = _array(obj, "boxes", "<f4", (7,))
-    timings = _required(obj, "timings")
-    if not isinstance(timings, dict):
-        _fail(ErrorCode.INVALID_FIELD, "timings", "expected a map")
+    fmt = _format(media_type)
+    reply: WireDetections | JsonDetections | WireError = _decode(fmt, fmt.response, data, limits, {})
+    if isinstance(reply, WireError):
+        return ErrorReply(
+            reply.code, reply.message, reply.field, reply.stream_id, reply.seq, reply.retry_after_s
+        )
+    if isinstance(reply, JsonDetections):
+        boxes = np.asarray(reply.boxes, dtype=np.float32).reshape(-1, 7)  # (K, 7)
+        scores, labels = np.asarray(reply.scores, np.float32), np.asarray(reply.labels, np.int32)  # (K,)
+    else:
+        boxes = _reply_array(reply.boxes, "boxes", "<f4", (7,))
+        scores = _reply_array(reply.scores, "scores", "<f4", ())
+        labels = _reply_array(reply.labels, "labels", "<i4", ())
     return DetectionsReply(
-        stream_id=str(_required(obj, "stream_id")),
-        seq=_int(_required(obj, "seq"), "seq"),
+        stream_id=reply.stream_id,
+        seq=reply.seq,
         boxes=boxes,
-        scores=_array(obj, "scores", "<f4", ()),
-        labels=_array(obj, "labels", "<i4", ()),
-        class_names=tuple(_required(obj, "class_names")),
-        context_sectors=_int(_required(obj, "context_sectors"), "context_sectors"),
-        gap=_int(_required(obj, "gap"), "gap"),
-        timings=Timings(
-            **{k: float(_required(timings, k, "timings.")) for k in ("queue_ms", "model_ms", "total_ms")}
-        ),
+        scores=scores,
+        labels=labels,
+        class_names=tuple(reply.class_names),
+        context_sectors=reply.context_sectors,
+        gap=reply.gap,
+        timings=Timings(reply.timings.queue_ms, reply.timings.model_ms, reply.timings.total_ms),
     )
 
 
 def reply_to_json(r: DetectionsReply) -> dict[str, Any]:
-    """A DetectionsReply as plain JSON-able data (for HTTP clients that send Accept: application/json)."""
-    return {
-        "kind": "detections",
-        "stream_id": r.stream_id,
-        "seq": r.seq,
-        "boxes": np.asarray(r.boxes, dtype=np.float64).reshape(-1, 7).tolist(),
-        "scores": np.asarray(r.scores, dtype=np.float64).tolist(),
-        "labels": np.asarray(r.labels).astype(int).tolist(),
-        "class_names": list(r.class_names),
-        "context_sectors": r.context_sectors,
-        "gap": r.gap,
-        "timings": _timings_dict(r.timings),
-    }
+    """A DetectionsReply as plain JSON-able data (what HTTP clients get with Accept: application/json)."""
+    return msgspec.to_builtins(_json_detections(r))
 
 
 def error_to_json(e: ErrorReply) -> dict[str, Any]:
-    return {
-        "kind": "error",
-        "code": e.code.value,
-        "message": e.message,
-        "field": e.field,
-        "stream_id": e.stream_id,
-        "seq": e.seq,
-        "retry_after_s": e.retry_after_s,
-    }
+    return msgspec.to_builtins(_wire_error(e))

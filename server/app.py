@@ -13,23 +13,27 @@ from dataclasses import dataclass
 from functools import partial
 from typing import Any, Protocol
 
+import msgspec
 from fastapi import FastAPI, Request, Response
 from fastapi.responses import JSONResponse
 
 from contract import (
     HTTP_STATUS,
+    JSON,
     MSGPACK,
     MSGPACK_TYPES,
     ErrorCode,
     ErrorReply,
+    JsonDetections,
     Limits,
     ServiceError,
+    WireDetections,
+    WireError,
+    WireSector,
     check_stream_id,
     decode_sector,
     encode_error,
     encode_reply,
-    error_to_json,
-    reply_to_json,
 )
 from model.checkpoint import load_checkpoint
 from model.config import get_config
@@ -130,6 +134,7 @@ def create_app(
     app = FastAPI(title="PHiM detection server", version=package_version(), lifespan=lifespan)
     app.add_exception_handler(ServiceError, _service_error_handler)  # type: ignore[arg-type]
     _add_routes(app)
+    _publish_sector_route(app)
     return app
 
 
@@ -144,7 +149,7 @@ def wants_json(request: Request, default: bool) -> bool:
     accept = request.headers.get("accept", "")
     if any(t in accept for t in MSGPACK_TYPES):
         return False
-    return "application/json" in accept or default
+    return JSON in accept or default
 
 
 def error_response(
@@ -154,22 +159,24 @@ def error_response(
     headers = {}
     if e.retry_after_s is not None:
         headers["Retry-After"] = str(max(1, math.ceil(e.retry_after_s)))
-    status = HTTP_STATUS[e.code]
-    if as_json:
-        return JSONResponse(error_to_json(reply), status_code=status, headers=headers)
-    return Response(encode_error(reply), status_code=status, headers=headers, media_type=MSGPACK)
+    media_type = JSON if as_json else MSGPACK
+    body = encode_error(reply, media_type)
+    return Response(body, status_code=HTTP_STATUS[e.code], headers=headers, media_type=media_type)
 
 
 async def _service_error_handler(request: Request, e: ServiceError) -> Response:
     return error_response(e, wants_json(request, default=True), request.path_params.get("stream_id"))
 
 
-def _check_content_type(request: Request) -> None:
-    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if ctype not in MSGPACK_TYPES:
+def _content_type(request: Request) -> str:
+    return request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+
+def _check_content_type(ctype: str) -> None:
+    if ctype != JSON and ctype not in MSGPACK_TYPES:
         raise ServiceError(
             ErrorCode.BAD_REQUEST,
-            f"Content-Type: {ctype or 'missing'!r}; expected {MSGPACK!r}",
+            f"Content-Type: {ctype or 'missing'!r}; expected {MSGPACK!r} or {JSON!r}",
             "Content-Type",
         )
 
@@ -199,24 +206,24 @@ async def read_body(request: Request, limit: int) -> bytes:
 
 
 async def post_sector(request: Request) -> Response:
+    """A sector in msgpack or JSON (by Content-Type); the reply in msgpack or JSON by Accept, and when Accept
+    names neither, in the request's format."""
     stream_id: str = request.path_params["stream_id"]
     svc = _services(request)
-    as_json = wants_json(request, default=False)
-    seq: int | None = None
+    ctype = _content_type(request)
+    reply_type = JSON if wants_json(request, default=ctype == JSON) else MSGPACK
     try:
-        _check_content_type(request)
-        msg = decode_sector(await read_body(request, svc.limits.max_body_bytes), svc.limits, stream_id)
+        _check_content_type(ctype)
+        body = await read_body(request, svc.limits.max_body_bytes)
+        msg = decode_sector(body, svc.limits, stream_id, media_type=ctype)
     except ServiceError as e:
         svc.metrics.count("http", e.code.value)
-        return error_response(e, as_json, stream_id)
-    seq = msg.seq
+        return error_response(e, reply_type == JSON, stream_id)
     try:
         reply = await asyncio.wrap_future(svc.worker.submit(msg, transport="http"))
     except ServiceError as e:
-        return error_response(e, as_json, stream_id, seq)
-    if as_json:
-        return JSONResponse(reply_to_json(reply))
-    return Response(encode_reply(reply), media_type=MSGPACK)
+        return error_response(e, reply_type == JSON, stream_id, msg.seq)
+    return Response(encode_reply(reply, reply_type), media_type=reply_type)
 
 
 async def delete_stream(stream_id: str, request: Request) -> dict[str, Any]:
@@ -268,9 +275,79 @@ ROUTES: list[tuple[str, str, Callable[..., Any]]] = [
 ]
 
 
+SECTOR_PATH = "/v1/streams/{stream_id}/sectors"
+
+
 def _add_routes(app: FastAPI) -> None:
     # the hot route as a plain Starlette route: FastAPI's parameter handling cost about 0.15 ms per sector
-    # (docs/benchmarks.md); it is not in the OpenAPI schema (msgpack bodies would not show there anyway)
-    app.router.add_route("/v1/streams/{stream_id}/sectors", post_sector, methods=["POST"])
+    # (docs/benchmarks.md); `_publish_sector_route` adds it to the OpenAPI document
+    app.router.add_route(SECTOR_PATH, post_sector, methods=["POST"])
     for method, path, endpoint in ROUTES:
         app.add_api_route(path, endpoint, methods=[method])
+
+
+# ------------------------------------------------------------------------------------------------ OpenAPI
+
+
+REF_TEMPLATE = "#/components/schemas/{name}"
+
+
+def _publish_sector_route(app: FastAPI) -> None:
+    """Puts the sector route (a plain Starlette route, which FastAPI leaves out) in GET /openapi.json, with
+    schemas generated from the contract's msgspec Structs: once, when the document is first asked for."""
+    fastapi_openapi = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        doc = app.openapi_schema
+        if doc is None:
+            doc = fastapi_openapi()  # FastAPI's document, kept in app.openapi_schema (and so is what we add)
+            refs, schemas = msgspec.json.schema_components(
+                [WireSector, WireDetections, JsonDetections, WireError], ref_template=REF_TEMPLATE
+            )
+            doc.setdefault("components", {}).setdefault("schemas", {}).update(schemas)
+            stream_id = schemas["WireSector"]["properties"]["stream_id"]
+            doc["paths"][SECTOR_PATH] = {"post": _sector_operation(stream_id, *refs)}
+        return doc
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+Schema = dict[str, Any]  # a JSON Schema or a piece of the OpenAPI document
+
+
+def _sector_operation(
+    stream_id: Schema, sector: Schema, detections: Schema, json_detections: Schema, error: Schema
+) -> Schema:
+    """The OpenAPI operation of POST SECTOR_PATH, from the JSON Schemas of its messages."""
+
+    def content(msgpack_schema: Schema, json_schema: Schema) -> Schema:
+        return {MSGPACK: {"schema": msgpack_schema}, JSON: {"schema": json_schema}}
+
+    codes: dict[int, list[str]] = {}
+    for code, status in HTTP_STATUS.items():
+        codes.setdefault(status, []).append(code.value)
+    errors = {
+        str(status): {
+            "description": f"WireError, code {' or '.join(names)}",
+            "content": content(error, error),
+        }
+        for status, names in sorted(codes.items())
+    }
+    errors["503"]["headers"] = {
+        "Retry-After": {"description": "seconds (overloaded)", "schema": {"type": "integer"}}
+    }
+    return {
+        "summary": "Run one sector of a stream",
+        "description": (
+            "The body is a sector in msgpack or JSON (Content-Type). The reply is msgpack or JSON by Accept; "
+            "when Accept names neither, in the body's format. Array `data`: msgpack bin; base64 in JSON. "
+            "The JSON reply gives the arrays as lists (JsonDetections)."
+        ),
+        "operationId": "post_sector",
+        "parameters": [{"name": "stream_id", "in": "path", "required": True, "schema": stream_id}],
+        "requestBody": {"required": True, "content": content(sector, sector)},
+        "responses": {
+            "200": {"description": "the detections", "content": content(detections, json_detections)},
+            **errors,
+        },
+    }

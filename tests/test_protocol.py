@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
 import msgpack
+import msgspec
 import numpy as np
 import pytest
 
 from contract import (
     HTTP_STATUS,
+    JSON,
+    MAX_LIST_LEN,
     DetectionsReply,
     ErrorCode,
     ErrorReply,
@@ -73,6 +77,29 @@ def test_sector_round_trip_is_bit_exact():
     assert isinstance(raw(msg)["points"]["data"], bytes)
 
 
+def test_json_sector_round_trip_carries_the_bytes_as_base64():
+    msg = sector(c=5, reset=True)
+    body = encode_sector(msg, JSON)
+    assert isinstance(json.loads(body)["points"]["data"], str)
+    out = decode_sector(body, media_type=JSON)
+    assert (out.stream_id, out.seq, out.fields, out.reset) == ("car-1", 7, msg.fields, True)
+    assert out.points.dtype == np.dtype("<f4") and out.points.tobytes() == msg.points.tobytes()
+
+
+def test_msgpack_points_are_a_read_only_view_of_the_body():
+    data = encode_sector(sector())
+    points = decode_sector(data).points
+    assert np.shares_memory(points, np.frombuffer(data, np.uint8)) and not points.flags.writeable
+
+
+def test_numpy_scalars_are_encoded_as_numbers():
+    msg = sector(seq=np.int64(9), sector_index=np.uint8(3), reset=np.bool_(True))
+    out = decode_sector(encode_sector(msg))
+    assert (out.seq, out.sector_index, out.reset) == (9, 3, True)
+    with pytest.raises(ValueError, match="media type"):
+        encode_sector(msg, "text/csv")
+
+
 def test_key_stream_id_is_authoritative():
     body = raw(sector())
     del body["stream_id"]
@@ -94,6 +121,14 @@ def test_extension_types_and_non_string_keys_are_rejected():
     e = expect(ErrorCode.BAD_REQUEST, "body", pack(msgpack.ExtType(1, b"obj")))
     assert "extension type" in e.message
     expect(ErrorCode.BAD_REQUEST, "body", pack({1: 2}))
+    e = expect(ErrorCode.BAD_REQUEST, "seq", pack({**raw(sector()), "seq": msgpack.ExtType(1, b"7")}))
+    assert "extension type" in e.message
+
+
+@pytest.mark.parametrize("data", [b"{", b'{"seq": 1} x', b"\xff"])
+def test_undecodable_json(data: bytes):
+    e = expect(ErrorCode.BAD_REQUEST, "body", data, media_type=JSON)
+    assert "JSON" in e.message
 
 
 @pytest.mark.parametrize("missing", ["seq", "sector_index", "timestamp_ns", "points", "fields", "stream_id"])
@@ -110,28 +145,35 @@ def test_not_a_map_and_unknown_keys():
     assert "sequence" in e.message
 
 
-@pytest.mark.parametrize(
-    ("key", "value", "field"),
-    [
-        ("seq", -1, "seq"),
-        ("seq", "3", "seq"),
-        ("seq", True, "seq"),
-        ("seq", 2**64 - 1, "seq"),
-        ("sector_index", 1.5, "sector_index"),
-        ("timestamp_ns", None, "timestamp_ns"),
-        ("reset", 1, "reset"),
-        ("stream_id", "", "stream_id"),
-        ("stream_id", "car 1", "stream_id"),
-        ("stream_id", "car/1", "stream_id"),
-        ("stream_id", 5, "stream_id"),
-        ("fields", ["x", "y", "z"], "fields"),
-        ("fields", ["y", "x", "z", "intensity"], "fields"),
-        ("fields", "x,y,z,intensity", "fields"),
-        ("fields", ["x", "y", "z", 3], "fields[3]"),
-    ],
-)
+SCALAR_CASES = [
+    ("seq", -1, "seq"),
+    ("seq", "3", "seq"),
+    ("seq", True, "seq"),
+    ("seq", 2**64 - 1, "seq"),
+    ("sector_index", 1.5, "sector_index"),
+    ("timestamp_ns", None, "timestamp_ns"),
+    ("reset", 1, "reset"),
+    ("stream_id", "", "stream_id"),
+    ("stream_id", "car 1", "stream_id"),
+    ("stream_id", "car/1", "stream_id"),
+    ("stream_id", 5, "stream_id"),
+    ("fields", ["x", "y", "z"], "fields"),
+    ("fields", ["y", "x", "z", "intensity"], "fields"),
+    ("fields", "x,y,z,intensity", "fields"),
+    ("fields", ["x", "y", "z", 3], "fields[3]"),
+]
+
+
+@pytest.mark.parametrize(("key", "value", "field"), SCALAR_CASES)
 def test_invalid_scalar_fields(key: str, value, field: str):
     expect(ErrorCode.INVALID_FIELD, field, pack({**raw(sector()), key: value}))
+
+
+@pytest.mark.parametrize(("key", "value", "field"), SCALAR_CASES)
+def test_json_bodies_get_the_same_errors(key: str, value, field: str):
+    expect(
+        ErrorCode.INVALID_FIELD, field, msgspec.json.encode({**raw(sector()), key: value}), media_type=JSON
+    )
 
 
 def test_duplicate_field_names():
@@ -140,24 +182,38 @@ def test_duplicate_field_names():
     expect(ErrorCode.INVALID_FIELD, "fields", pack(body))
 
 
-@pytest.mark.parametrize(
-    ("change", "field", "needle"),
-    [
-        ({"dtype": "<f8"}, "points.dtype", "'<f4'"),
-        ({"dtype": ">f4"}, "points.dtype", "'<f4'"),
-        ({"shape": [50]}, "points.shape", "[N, C]"),
-        ({"shape": [49, 4]}, "points.data", "needs 784"),  # shape does not match the bytes
-        ({"shape": [50, 5]}, "points.shape[1]", "5 columns but 4 names"),
-        ({"shape": [100, 2]}, "points.shape[1]", "[4, 16]"),
-        ({"data": [1.0, 2.0]}, "points.data", "expected binary"),
-        ({"extra": 1}, "points", "unknown keys"),
-    ],
-)
+POINT_CASES = [
+    ({"dtype": "<f8"}, "points.dtype", "'<f4'"),
+    ({"dtype": ">f4"}, "points.dtype", "'<f4'"),
+    ({"shape": [50]}, "points.shape", "[N, C]"),
+    ({"shape": [49, 4]}, "points.data", "needs 784"),  # shape does not match the bytes
+    ({"shape": [50, 5]}, "points.shape[1]", "5 columns but 4 names"),
+    ({"shape": [100, 2]}, "points.shape[1]", "[4, 16]"),
+    ({"data": [1.0, 2.0]}, "points.data", "expected binary"),
+    ({"extra": 1}, "points", "unknown keys"),
+]
+
+
+@pytest.mark.parametrize(("change", "field", "needle"), POINT_CASES)
 def test_invalid_points(change: dict, field: str, needle: str):
     body = raw(sector())
     body["points"] = {**body["points"], **change}
     e = expect(ErrorCode.INVALID_FIELD, field, pack(body))
     assert needle in e.message
+
+
+@pytest.mark.parametrize(("change", "field", "needle"), POINT_CASES)
+def test_invalid_json_points(change: dict, field: str, needle: str):
+    body = raw(sector())  # msgspec.json writes its bytes as base64
+    body["points"] = {**body["points"], **change}
+    e = expect(ErrorCode.INVALID_FIELD, field, msgspec.json.encode(body), media_type=JSON)
+    assert needle in e.message
+
+
+def test_json_data_must_be_base64():
+    body = json.loads(encode_sector(sector(), JSON))
+    body["points"]["data"] = "not base64!"
+    expect(ErrorCode.INVALID_FIELD, "points.data", json.dumps(body).encode(), media_type=JSON)
 
 
 def test_limits_give_too_large_naming_the_field():
@@ -169,6 +225,8 @@ def test_limits_give_too_large_naming_the_field():
     body = {**raw(sector()), "fields": [*FIELDS, "a", "b"]}
     expect(ErrorCode.TOO_LARGE, "fields", pack(body), limits)
     expect(ErrorCode.TOO_LARGE, "stream_id", encode_sector(sector()), limits, stream_id="k" * 17)
+    body = {**raw(sector()), "fields": ["a"] * (MAX_LIST_LEN + 1)}  # the schema's own ceiling
+    expect(ErrorCode.TOO_LARGE, "fields", pack(body), Limits(max_fields=10_000))
 
 
 def reply(k: int = 3) -> DetectionsReply:
@@ -197,12 +255,29 @@ def test_reply_round_trip(k: int):
     assert (out.class_names, out.context_sectors, out.gap, out.timings) == (r.class_names, 4, 2, r.timings)
     js = reply_to_json(r)
     assert js["kind"] == "detections" and len(js["boxes"]) == k and js["timings"]["model_ms"] == 30.0
+    assert json.loads(encode_reply(r, JSON)) == js
+    out = decode_response(encode_reply(r, JSON), media_type=JSON)
+    assert isinstance(out, DetectionsReply) and out.boxes.shape == (k, 7) and out.labels.dtype == np.int32
+    assert out.boxes.tobytes() == r.boxes.tobytes() and out.scores.tobytes() == r.scores.tobytes()
+    assert (out.class_names, out.timings) == (r.class_names, r.timings)
+
+
+def test_bad_reply_names_the_field():
+    body = msgpack.unpackb(encode_reply(reply()))
+    with pytest.raises(ServiceError, match=r"boxes\.shape") as info:
+        decode_response(pack({**body, "boxes": {**body["boxes"], "shape": [3, 6]}}))
+    assert info.value.field == "boxes.shape"
+    with pytest.raises(ServiceError, match="kind") as info:
+        decode_response(pack({**body, "kind": "other"}))
+    assert info.value.field == "kind"
 
 
 def test_error_round_trip_and_http_status():
     e = ErrorReply(ErrorCode.OVERLOADED, "queue full", None, "car-1", 9, retry_after_s=0.25)
     assert decode_response(encode_error(e)) == e
     assert error_to_json(e)["code"] == "overloaded"
+    assert decode_response(encode_error(e, JSON), media_type=JSON) == e
+    assert json.loads(encode_error(e, JSON)) == error_to_json(e) and error_to_json(e)["kind"] == "error"
     assert set(HTTP_STATUS) == set(ErrorCode)
     assert HTTP_STATUS[ErrorCode.STALE_SEQUENCE] == 409 and HTTP_STATUS[ErrorCode.DEADLINE_EXCEEDED] == 504
 

@@ -1,0 +1,43 @@
+"""The zenoh key space: the key expressions under one prefix (docs/protocol.md, "Zenoh"). Import it from
+`contract`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+DEFAULT_KEY_PREFIX = "phim/v1"
+
+
+@dataclass(frozen=True)
+class KeySpace:
+    """The key expressions under one prefix."""
+
+    prefix: str = DEFAULT_KEY_PREFIX
+
+    @property
+    def sector_queryable(self) -> str:  # request/reply: get with a sector as payload
+        return f"{self.prefix}/streams/*/sector"
+
+    @property
+    def sector_subscriber(self) -> str:  # pub/sub: put a sector
+        return f"{self.prefix}/streams/*/sectors"
+
+    def sector(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/sector"
+
+    def sectors(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/sectors"
+
+    def detections(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/detections"
+
+    def errors(self, stream_id: str) -> str:
+        return f"{self.prefix}/streams/{stream_id}/errors"
+
+    def worker(self, worker_id: str) -> str:
+        return f"{self.prefix}/workers/{worker_id}"
+
+    def stream_id_of(self, key: str) -> str:
+        """The stream-ID chunk of `{prefix}/streams/{id}/...` ('' if the key has another shape)."""
+        head = f"{self.prefix}/streams/"
+        return key[len(head) :].split("/", 1)[0] if key.startswith(head) else ""
