@@ -1,6 +1,8 @@
-"""The messages as they travel: msgspec Structs, the one schema that the decoders enforce (unknown keys
-refused) and the HTTP app publishes in its OpenAPI document; and how a message that breaks it is told.
-Import from `contract`.
+"""The messages as they travel: msgspec Structs, the one schema that the decoders enforce and the HTTP app
+publishes in its OpenAPI document; and how a message that breaks it is told. Import from `contract`.
+
+Requests refuse unknown keys; replies may gain keys in later versions, so a client ignores the ones it does
+not know (as before the schema library).
 
 Arrays are `WireArray` maps whose `data` is raw bytes: msgpack bin, base64 in JSON.
 """
@@ -41,7 +43,7 @@ Gap = Annotated[Count, Meta(description="sectors missed since the stream's last 
 BOXES = "x, y, z (box centre), l, w, h (metres), yaw (radians), sensor frame"
 
 
-class WireTimings(Struct, forbid_unknown_fields=True):
+class WireTimings(Struct):
     """Where the sector's time went in the server (ms): waiting for the device loop, its forward, in all."""
 
     queue_ms: float
@@ -49,7 +51,7 @@ class WireTimings(Struct, forbid_unknown_fields=True):
     total_ms: float
 
 
-class WireError(Struct, forbid_unknown_fields=True, tag_field="kind", tag="error"):
+class WireError(Struct, tag_field="kind", tag="error"):
     """A request's failure."""
 
     code: ErrorCode
@@ -80,7 +82,7 @@ class WireSector(Struct, forbid_unknown_fields=True, kw_only=True):
     reset: Annotated[bool, Meta(description="start the stream over (fresh state; seq may restart)")] = False
 
 
-class WireDetections(Struct, forbid_unknown_fields=True, tag_field="kind", tag="detections"):
+class WireDetections(Struct, tag_field="kind", tag="detections"):
     """A sector's detections (msgpack)."""
 
     stream_id: str
@@ -94,7 +96,7 @@ class WireDetections(Struct, forbid_unknown_fields=True, tag_field="kind", tag="
     timings: WireTimings
 
 
-class JsonDetections(Struct, forbid_unknown_fields=True, tag_field="kind", tag="detections"):
+class JsonDetections(Struct, tag_field="kind", tag="detections"):
     """A sector's detections in JSON: as WireDetections, with the arrays as lists."""
 
     stream_id: str

@@ -285,3 +285,14 @@ def test_error_round_trip_and_http_status():
 def test_protocol_needs_no_torch():
     code = "import sys, contract; assert 'torch' not in sys.modules, 'the contract imported torch'"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_a_reply_with_keys_a_later_server_adds_still_decodes():
+    """Requests refuse unknown keys; replies may grow, and a client ignores what it does not know."""
+    sent = reply()
+    body = msgpack.unpackb(encode_reply(sent), raw=False)
+    body["new_key"], body["timings"]["new_ms"] = 1, 2.0
+    decoded = decode_response(pack(body))
+    assert isinstance(decoded, DetectionsReply) and decoded.seq == sent.seq and len(decoded.scores) == 3
+    full = ErrorReply(ErrorCode.OVERLOADED, "full")
+    assert decode_response(pack({**msgpack.unpackb(encode_error(full), raw=False), "hint": "x"})) == full

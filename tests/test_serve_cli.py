@@ -70,7 +70,7 @@ def test_dockerfile_essentials():
     assert "-c constraints.txt" in runs  # the pinned versions CI runs with
     copied = {rest.split()[0] for w, rest in ins if w == "COPY"}
     packages = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
-    assert {p.rstrip("*") for p in packages["include"]} <= copied  # every package of the project is in the image
+    assert {p.rstrip("*") for p in packages["include"]} <= copied  # every package of the project is copied
     assert "constraints.txt" in " ".join(rest for w, rest in ins if w == "COPY")
     assert "python -m server.default_model --out" in runs  # weights inside
     assert re.search(r"apt-get install .*\bgcc\b", runs)  # Triton builds its kernel launchers with it
