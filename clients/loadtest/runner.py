@@ -1,10 +1,11 @@
 """One load-test step: N vehicles, open loop (at sensor rate, from scheduled times) or closed loop.
 
 Open loop: each vehicle's k-th sector is due at t0 + offset_v + k / rate and is sent then, whatever became of
-the earlier ones (a send is a task of its own); its latency runs from the due time, so a server that falls
-behind shows it in full (no coordinated omission). Over a transport that does not keep one stream's requests
-in order while several are in flight (HTTP), a vehicle's sector is sent once its previous one is answered,
-as wrk2 does on one connection; its latency still runs from its due time.
+the earlier ones (a send is a task of its own, never waiting for an answer); its latency runs from the due
+time, so a server that falls behind shows it in full (no coordinated omission). One stream's sectors must
+reach the server in order (it answers an overtaken one 409 stale): a sector's send starts once its previous
+one is on its way (`send_async`'s `on_sent`: over HTTP its body is written, on a connection of its own;
+over zenoh the get is queued on the session), which takes a fraction of a millisecond, not an answer.
 Closed loop: each vehicle sends its next sector as soon as the last one is answered (in flight = vehicles).
 After the sending window, outstanding sectors get up to `drain_timeout_s`; what is still unanswered then is
 lost. Every scheduled sector is one Record.
@@ -87,7 +88,7 @@ class StepRunner:
     ) -> None:
         loop = asyncio.get_running_loop()
         n = int(step.duration_s / self.period_s)
-        previous: asyncio.Task[None] | None = None
+        previous: asyncio.Event | None = None  # set once the vehicle's previous sector is on its way
         for k in range(n):
             due = step.t0 + offset + k * self.period_s
             delay = due - loop.time()
@@ -95,11 +96,11 @@ class StepRunner:
                 await asyncio.sleep(delay)
             rec = Record(v, k, due)
             step.records.append(rec)
-            after = None if self.client.keeps_order_in_flight else previous
-            task = asyncio.create_task(self._send(step, rec, after))
+            on_way = asyncio.Event()
+            task = asyncio.create_task(self._send(step, rec, previous, on_way))
             tasks.add(task)
             task.add_done_callback(tasks.discard)
-            previous = task
+            previous = on_way
 
     # ---------------------------------------------------------------------------------------- closed loop
 
@@ -132,22 +133,31 @@ class StepRunner:
             fields=self.source.fields,
         )
 
-    async def _send(self, step: StepRun, rec: Record, after: asyncio.Task[None] | None = None) -> None:
-        """Send rec's sector (once `after`, the vehicle's previous send, is done) and settle the record."""
+    async def _send(
+        self,
+        step: StepRun,
+        rec: Record,
+        after: asyncio.Event | None = None,
+        on_way: asyncio.Event | None = None,
+    ) -> None:
+        """Send rec's sector once `after` is set (the previous sector of its stream is on its way), set
+        `on_way` when this one is (or has failed), and settle the record."""
         loop = asyncio.get_running_loop()
         if after is not None:
-            await asyncio.wait({after})
+            await after.wait()
         msg = self._message(step, rec)
         rec.sent = loop.time()
         step.inflight += 1
         try:
-            reply = await self.client.send_async(msg)
+            reply = await self.client.send_async(msg, None if on_way is None else on_way.set)
         except (ServerError, TransportError) as e:
             rec.settle_error(loop.time(), e)
         else:
             rec.settle_ok(loop.time(), reply)
         finally:
             step.inflight -= 1
+            if on_way is not None:
+                on_way.set()
 
     async def _end_streams(self, ids: list[str]) -> None:
         for sid in ids:
