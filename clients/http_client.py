@@ -43,7 +43,7 @@ class HttpConfig:
     url: str = "http://127.0.0.1:8080"
     timeout_s: float = 10.0  # each send and receive, and waiting for a pooled connection
     connect_timeout_s: float = 5.0
-    max_connections: int = 256  # open connections, idle or busy, per path (sync, async)
+    max_connections: int | None = 256  # open connections, idle or busy, per path (sync, async); None: any
 
 
 class HttpClient(DetectorClient):
