@@ -47,7 +47,7 @@ class StepRun:
     records: list[Record] = field(default_factory=list)
     windows: list[Span] = field(default_factory=list)
     stable: bool | None = None  # None: no windows, stability not judged
-    send_end: float = 0.0  # loop time the last send had started
+    send_end: float = 0.0  # loop time the vehicles stopped sending (closed loop: last answer in)
     drain_end: float = 0.0  # loop time the drain was over
     inflight: int = 0
 
