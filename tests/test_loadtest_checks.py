@@ -6,6 +6,7 @@ real servers on loopback (uvicorn + zenoh) and, for the rules themselves, synthe
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import time
@@ -230,9 +231,7 @@ def sent_before_previous_answer(samples: dict[str, list[Any]]) -> int:
     ):
         by_vehicle.setdefault(v, []).append((seq, due + lag / 1e3, due + lat / 1e3))
     return sum(
-        nxt[1] < prev[2]
-        for rows in by_vehicle.values()
-        for prev, nxt in zip(sorted(rows), sorted(rows)[1:], strict=False)
+        nxt[1] < prev[2] for rows in by_vehicle.values() for prev, nxt in itertools.pairwise(sorted(rows))
     )
 
 
