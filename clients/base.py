@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import abc
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import Any, Self
 
 import numpy as np
 
 from contract import REQUIRED_FIELDS, DetectionsReply, ErrorCode, ErrorReply, SectorMessage, ServiceError
+
+OnSent = Callable[[], None]  # called once a sector is on its way, in order, to the server
 
 
 class ClientError(Exception):
@@ -95,18 +97,19 @@ class DetectorClient(abc.ABC):
     """
 
     transport: str  # "http" or "zenoh"
-    # whether sectors of one stream sent while earlier ones are in flight reach the server in send order
-    # (zenoh: one session, one link, a FIFO queryable); over HTTP concurrent requests travel on separate
-    # connections and may overtake each other, and the server rejects an overtaken sector as stale
-    keeps_order_in_flight: bool = False
 
     @abc.abstractmethod
     def send(self, msg: SectorMessage) -> DetectionsReply:
         """Send one sector and wait for its detections (raises ServerError / TransportError)."""
 
     @abc.abstractmethod
-    async def send_async(self, msg: SectorMessage) -> DetectionsReply:
-        """The same without blocking the event loop; many may be in flight at once."""
+    async def send_async(self, msg: SectorMessage, on_sent: OnSent | None = None) -> DetectionsReply:
+        """The same without blocking the event loop; many may be in flight at once.
+
+        `on_sent` (called at most once, on the event loop) says the sector is on its way: a sector of the
+        same stream sent after that reaches the server after this one (HTTP: this request's body has been
+        written to its connection; zenoh: the get is queued on the session, whose one link keeps order).
+        Not called when the send failed before that; the caller must not wait for it then."""
 
     @abc.abstractmethod
     def end_stream(self, stream_id: str) -> None:

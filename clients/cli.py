@@ -9,7 +9,7 @@ import dataclasses
 import json
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -17,6 +17,9 @@ from clients.loadtest.config import Mode
 from clients.options import connect_config, connection_options, every_option
 from model.data.samples import KITTI_VELODYNE
 from phim.options import EnumValue, json_option
+
+if TYPE_CHECKING:
+    from clients.loadtest.config import LoadTestConfig, SourceConfig
 
 NewFile = click.Path(dir_okay=False, path_type=Path)
 Folder = click.Path(file_okay=False, path_type=Path)
@@ -56,7 +59,52 @@ def _data(data: Path | None, synthetic: bool) -> Path | None:
     help="open: at sensor rate, latency from each scheduled time; closed: send when answered.",
 )
 @click.option(
-    "--duration", type=click.FloatRange(0.1), default=10.0, show_default=True, help="Seconds per step."
+    "--duration",
+    type=click.FloatRange(0.1),
+    default=10.0,
+    show_default=True,
+    help="Seconds measured per step.",
+)
+@click.option(
+    "--warmup",
+    type=click.FloatRange(0),
+    default=0.0,
+    show_default=True,
+    help="Seconds per step sent the same way before measuring, not counted.",
+)
+@click.option(
+    "--window-s",
+    type=click.FloatRange(0.1),
+    help="Measure in windows of this many seconds until the last 3 agree (instead of --duration).",
+)
+@click.option(
+    "--stability-pct",
+    type=click.FloatRange(0),
+    default=10.0,
+    show_default=True,
+    help="Windows agree when each is within this % of their mean (sectors answered/s and p99).",
+)
+@click.option(
+    "--max-windows",
+    type=click.IntRange(3),
+    default=10,
+    show_default=True,
+    help="Windows at most; a step not stable by then fails.",
+)
+@click.option(
+    "--max-p99-ms",
+    type=click.FloatRange(0),
+    envvar="PHIM_LOADTEST_MAX_P99_MS",
+    show_envvar=True,
+    help="Threshold: a step passes when its p99 <= this. Any threshold given sets the exit code "
+    "[without one: 25 ms and no errors judge the steps, exit code 0].",
+)
+@click.option(
+    "--max-error-rate",
+    type=click.FloatRange(0, 1),
+    envvar="PHIM_LOADTEST_MAX_ERROR_RATE",
+    show_envvar=True,
+    help="Threshold: a step passes when the fraction of its sectors answered with an error or lost <= this.",
 )
 @click.option(
     "--turns-per-s", type=click.FloatRange(0.01), default=10.0, show_default=True, help="Sensor rate."
@@ -75,9 +123,6 @@ def _data(data: Path | None, synthetic: bool) -> Path | None:
 @click.option(
     "--drain-timeout", type=click.FloatRange(0), default=10.0, show_default=True, help="Wait for replies (s)."
 )
-@click.option(
-    "--p99-bound-ms", type=float, default=25.0, show_default=True, help="A step holds when p99 <= this."
-)
 @click.option("--keep-going", is_flag=True, help="Sweep on after a step that does not hold.")
 @json_option
 @click.option("--out", type=NewFile, help="Write the JSON report to this file.")
@@ -88,48 +133,72 @@ def _data(data: Path | None, synthetic: bool) -> Path | None:
 def loadtest(
     vehicles: int,
     sweep: str | None,
-    mode: Mode,
-    duration: float,
-    turns_per_s: float,
-    sectors_per_turn: int | None,
     data: Path | None,
     synthetic: bool,
     every: int,
     max_scans: int,
-    drain_timeout: float,
-    p99_bound_ms: float,
     keep_going: bool,
     as_json: bool,
     out: Path | None,
     csv_path: Path | None,
     plots: Path | None,
     progress: bool,
-    seed: int,
-    **connection: Any,
+    **options: Any,
 ) -> None:
     """Simulated vehicles streaming to a server: throughput and latency (open loop at sensor rate by
-    default: latency from each sector's scheduled time)."""
-    from clients.loadtest.config import LoadTestConfig, OutputConfig, SourceConfig
+    default: latency from each sector's scheduled time). Exit code 1 when a threshold given is broken."""
+    from clients.loadtest.config import OutputConfig, SourceConfig
     from clients.loadtest.report import table, to_json
     from clients.loadtest.run import run_loadtest
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    cfg = LoadTestConfig(
-        connect=connect_config(**connection),
-        source=SourceConfig(folder=_data(data, synthetic), max_scans=max_scans, every=every),
-        mode=mode,
-        vehicles=_vehicles(vehicles, sweep),
-        duration_s=duration,
-        turns_per_s=turns_per_s,
-        sectors_per_turn=sectors_per_turn,
-        drain_timeout_s=drain_timeout,
-        p99_bound_ms=p99_bound_ms,
-        stop_after_failure=not keep_going,
-        seed=seed,
-    )
+    source = SourceConfig(folder=_data(data, synthetic), max_scans=max_scans, every=every)
+    cfg = _loadtest_config(source, _vehicles(vehicles, sweep), not keep_going, **options)
     files = OutputConfig(json_path=out, csv_path=csv_path, plots_dir=plots, progress=progress)
     report = _or_exit(run_loadtest, cfg, files)
     click.echo(json.dumps(to_json(report)) if as_json else table(report))
+    if report.exit_code:
+        raise SystemExit(report.exit_code)
+
+
+def _loadtest_config(
+    source: SourceConfig,
+    vehicles: tuple[int, ...],
+    stop_after_failure: bool,
+    mode: Mode,
+    duration: float,
+    warmup: float,
+    window_s: float | None,
+    stability_pct: float,
+    max_windows: int,
+    max_p99_ms: float | None,
+    max_error_rate: float | None,
+    turns_per_s: float,
+    sectors_per_turn: int | None,
+    drain_timeout: float,
+    seed: int,
+    **connection: Any,
+) -> LoadTestConfig:
+    """The loadtest options -> a LoadTestConfig. Thresholds: those given, enforced; none given: the
+    defaults (p99 <= 25 ms, no errors) judge which steps held, and the exit code stays 0."""
+    from clients.loadtest.config import LoadTestConfig, Thresholds, WindowConfig
+
+    given = max_p99_ms is not None or max_error_rate is not None
+    return LoadTestConfig(
+        connect=connect_config(**connection),
+        source=source,
+        mode=mode,
+        vehicles=vehicles,
+        duration_s=duration,
+        warmup_s=warmup,
+        windows=None if window_s is None else WindowConfig(window_s, stability_pct, max_windows),
+        thresholds=Thresholds(max_p99_ms, max_error_rate, enforced=True) if given else Thresholds(),
+        turns_per_s=turns_per_s,
+        sectors_per_turn=sectors_per_turn,
+        drain_timeout_s=drain_timeout,
+        stop_after_failure=stop_after_failure,
+        seed=seed,
+    )
 
 
 @click.command()

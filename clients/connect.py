@@ -29,7 +29,7 @@ class ConnectConfig:
     use_http_control: bool = True  # over zenoh, reach model info / end stream at `url`
 
 
-def make_client(cfg: ConnectConfig, max_connections: int = 256) -> DetectorClient:
+def make_client(cfg: ConnectConfig, max_connections: int | None = 256) -> DetectorClient:
     """The transport's client (imported here: `phim serve` needs neither httpx nor the client code)."""
     from clients.http_client import HttpClient, HttpConfig
     from clients.zenoh_client import ZenohClient, ZenohClientConfig

@@ -1,25 +1,28 @@
 """HTTP client: msgpack sectors to `POST /v1/streams/{id}/sectors`, JSON for the other routes.
 
-The sync path runs on keep-alive connections of its own over plain sockets (`clients.http_conn`, the leaner
-stack: about 1.3 ms less per 455 KB sector than a sync httpx client, 0.2 ms less than `http.client`); the
-async path on one `httpx.AsyncClient` (made on
-first use). Both keep their connections open between requests. The timeout applies to each send and
-receive; `RequestTimeout` when one passes.
+One stack, httpx: the sync path on an `httpx.Client` (its connection pool is thread-safe: "it can be shared
+between threads"), the async path on an `httpx.AsyncClient` (made on first use, bound to that event loop).
+Both keep their connections open between requests (keep-alive, TCP_NODELAY). The timeout applies to each
+send and receive (and to waiting for a pooled connection); `RequestTimeout` when one passes.
+
+`send_async(msg, on_sent)` calls `on_sent` once the request's body has been written to its connection
+(httpcore's `trace` extension, event `http11.send_request_body.complete`): from then on a later request,
+on another connection, reaches the server after this one. That is how the load tester keeps one stream's
+sectors in order without waiting for their answers.
 """
 
 from __future__ import annotations
 
 import contextlib
-import http.client
 import json
-from collections.abc import Iterator
+import urllib.parse
+from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import httpx
 
-from clients.base import DetectorClient, RequestTimeout, ServerError, TransportError, answer
-from clients.http_conn import ConnectionPool, Response
+from clients.base import DetectorClient, OnSent, RequestTimeout, ServerError, TransportError, answer
 from contract import (
     MSGPACK,
     DetectionsReply,
@@ -32,14 +35,15 @@ from contract import (
 )
 
 SECTOR_HEADERS = {"Content-Type": MSGPACK, "Accept": MSGPACK}
+BODY_WRITTEN = "http11.send_request_body.complete"  # httpcore's trace event (HTTP/1.1)
 
 
 @dataclass(frozen=True)
 class HttpConfig:
     url: str = "http://127.0.0.1:8080"
-    timeout_s: float = 10.0  # each send and receive (async: also waiting for a pooled connection)
+    timeout_s: float = 10.0  # each send and receive, and waiting for a pooled connection
     connect_timeout_s: float = 5.0
-    max_connections: int = 256  # async: open connections (requests in flight); sync: idle ones kept
+    max_connections: int | None = 256  # open connections, idle or busy, per path (sync, async); None: any
 
 
 class HttpClient(DetectorClient):
@@ -49,12 +53,13 @@ class HttpClient(DetectorClient):
 
     def __init__(self, url: str = HttpConfig.url, config: HttpConfig | None = None, **overrides: Any):
         cfg = config or HttpConfig(url=url, **overrides)
+        _check_url(cfg.url)
         self.config = cfg
         self._timeout = httpx.Timeout(cfg.timeout_s, connect=cfg.connect_timeout_s)
         self._limits = httpx.Limits(
             max_connections=cfg.max_connections, max_keepalive_connections=cfg.max_connections
         )
-        self._sync = ConnectionPool(cfg.url, cfg.timeout_s, cfg.connect_timeout_s, cfg.max_connections)
+        self._sync = httpx.Client(base_url=cfg.url, timeout=self._timeout, limits=self._limits)
         self._async: httpx.AsyncClient | None = None
         self._closed = False
 
@@ -62,12 +67,15 @@ class HttpClient(DetectorClient):
 
     def send(self, msg: SectorMessage) -> DetectionsReply:
         r = self._request("POST", _sector_path(msg.stream_id), encode_sector(msg), SECTOR_HEADERS)
-        return _sector_answer(r.status, r.body)
+        return _sector_answer(r.status_code, r.content)
 
-    async def send_async(self, msg: SectorMessage) -> DetectionsReply:
+    async def send_async(self, msg: SectorMessage, on_sent: OnSent | None = None) -> DetectionsReply:
         body = encode_sector(msg)
-        with _errors(self.config.url):
-            r = await self._aclient().post(_sector_path(msg.stream_id), content=body, headers=SECTOR_HEADERS)
+        extensions = None if on_sent is None else {"trace": _body_written(on_sent)}
+        with _errors(self.config.url, "POST", _sector_path(msg.stream_id)):
+            r = await self._aclient().post(
+                _sector_path(msg.stream_id), content=body, headers=SECTOR_HEADERS, extensions=extensions
+            )
         return _sector_answer(r.status_code, r.content)
 
     # ------------------------------------------------------------------------------------------ control
@@ -87,30 +95,26 @@ class HttpClient(DetectorClient):
 
     def ready(self) -> bool:
         """True once the server has warmed up (GET /health/ready is 200)."""
-        return self._request("GET", "/health/ready", None, {}).status == 200
+        return self._request("GET", "/health/ready", None, {}).status_code == 200
 
     def _get_json(self, method: str, path: str) -> dict[str, Any]:
         r = self._request(method, path, None, {"Accept": "application/json"})
         try:
-            body = json.loads(r.body)
+            body = json.loads(r.content)
         except json.JSONDecodeError as e:
-            raise TransportError(f"{method} {path}: HTTP {r.status}, not JSON ({e})") from None
-        if 200 <= r.status < 300:
+            raise TransportError(f"{method} {path}: HTTP {r.status_code}, not JSON ({e})") from None
+        if r.is_success:
             return body
-        raise _json_error(body, r.status, f"{method} {path}")
+        raise _json_error(body, r.status_code, f"{method} {path}")
 
     # ------------------------------------------------------------------------------------------ plumbing
 
-    def _request(self, method: str, path: str, body: bytes | None, headers: dict[str, str]) -> Response:
-        """One sync request on a pooled connection; socket errors -> RequestTimeout / TransportError."""
+    def _request(self, method: str, path: str, body: bytes | None, headers: dict[str, str]) -> httpx.Response:
+        """One sync request on a pooled connection; httpx's errors -> RequestTimeout / TransportError."""
         if self._closed:
             raise TransportError("the client is closed")
-        try:
-            return self._sync.request(method, path, body, headers)
-        except TimeoutError as e:
-            raise RequestTimeout(f"{self.config.url}: {method} {path}: no answer in time") from e
-        except (OSError, http.client.HTTPException) as e:
-            raise TransportError(f"{self.config.url}: {method} {path}: {type(e).__name__}: {e}") from e
+        with _errors(self.config.url, method, path):
+            return self._sync.request(method, path, content=body, headers=headers)
 
     def _aclient(self) -> httpx.AsyncClient:
         if self._closed:
@@ -133,15 +137,31 @@ class HttpClient(DetectorClient):
             self._async = None
 
 
+def _check_url(url: str) -> None:
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ValueError(f"url: {url!r}; expected http://host[:port][/base] or https://...")
+
+
+def _body_written(on_sent: OnSent) -> Callable[[str, dict[str, Any]], Awaitable[None]]:
+    """An httpcore trace callback that calls `on_sent` when the request's body has been written."""
+
+    async def trace(event: str, info: dict[str, Any]) -> None:
+        if event == BODY_WRITTEN:
+            on_sent()
+
+    return trace
+
+
 @contextlib.contextmanager
-def _errors(url: str) -> Iterator[None]:
-    """The async path: httpx's exceptions -> RequestTimeout / TransportError naming the server."""
+def _errors(url: str, method: str, path: str) -> Iterator[None]:
+    """httpx's exceptions -> RequestTimeout / TransportError naming the server and the request."""
     try:
         yield
     except httpx.TimeoutException as e:
-        raise RequestTimeout(f"{url}: {type(e).__name__}: no answer in time") from e
-    except httpx.TransportError as e:
-        raise TransportError(f"{url}: {type(e).__name__}: {e}") from e
+        raise RequestTimeout(f"{url}: {method} {path}: {type(e).__name__}: no answer in time") from e
+    except httpx.RequestError as e:  # connection refused or dropped, a malformed or undecodable reply
+        raise TransportError(f"{url}: {method} {path}: {type(e).__name__}: {e}") from e
 
 
 def _path_id(stream_id: str) -> str:

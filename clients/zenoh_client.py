@@ -21,7 +21,7 @@ from typing import Any
 
 import zenoh
 
-from clients.base import ClientError, DetectorClient, RequestTimeout, TransportError, answer
+from clients.base import ClientError, DetectorClient, OnSent, RequestTimeout, TransportError, answer
 from clients.http_client import HttpClient
 from clients.zenoh_session import MSGPACK_ENCODING, open_session
 from contract import (
@@ -57,7 +57,6 @@ class ZenohClient(DetectorClient):
     """The detector over zenoh request/reply. Send one stream's sectors from one client (ordering)."""
 
     transport = "zenoh"
-    keeps_order_in_flight = True
 
     def __init__(self, config: ZenohClientConfig | None = None, **overrides: Any):
         cfg = config or ZenohClientConfig(**overrides)
@@ -85,12 +84,14 @@ class ZenohClient(DetectorClient):
                 outcome = reply_outcome(reply)
         return _result(outcome, self._key(msg))
 
-    async def send_async(self, msg: SectorMessage) -> DetectionsReply:
+    async def send_async(self, msg: SectorMessage, on_sent: OnSent | None = None) -> DetectionsReply:
         loop = asyncio.get_running_loop()
         future: asyncio.Future[Outcome | None] = loop.create_future()
         pending = _Pending(loop, future)
         handler = zenoh.handlers.Callback(pending.on_reply, pending.on_done)
         self._session_or_fail().get(self._key(msg), handler, payload=self._body(msg), **self._get_options())
+        if on_sent is not None:  # the query is queued on the session: later gets follow it on the link
+            on_sent()
         return _result(await future, self._key(msg))
 
     def _key(self, msg: SectorMessage) -> str:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -133,6 +134,18 @@ def test_server_errors_are_typed_with_the_servers_code(
         if transport is Transport.HTTP:
             assert (stale.value.status, bad.value.status) == (409, 422)
         assert client.send_points(stream, 8, k, points).seq == 8  # the stream goes on
+
+
+def test_one_http_client_serves_many_threads(served: Served, turns: list[Any], ref: list[Any]) -> None:
+    """The sync path is thread-safe (httpx.Client's pool): 4 threads, a stream each, on one client with
+    fewer connections than threads; every reply is its own request's and equals the model's."""
+    flat = sectors(turns)[:6]
+    with HttpClient(served.url, max_connections=2) as http, ThreadPoolExecutor(4) as pool:
+        runs = list(pool.map(lambda i: send_all(http, f"mt-{i}", [flat]), range(4)))
+    for i, replies in enumerate(runs):
+        assert [(r.stream_id, r.seq) for r in replies] == [(f"mt-{i}", seq) for seq in range(len(flat))]
+        for reply, expected in zip(replies, ref, strict=False):
+            assert_same_boxes(reply.boxes, reply.scores, reply.labels, expected)
 
 
 def test_http_control_routes(served: Served, turns: list[Any]) -> None:

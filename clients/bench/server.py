@@ -31,13 +31,13 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import click
+import httpx
 import numpy as np
 import zenoh
 
 from clients.base import DetectorClient, sector_message
 from clients.bench.echo import ECHO_KEY, ECHO_PATH, HELD, request_header
 from clients.connect import ConnectConfig, Transport, make_client
-from clients.http_conn import ConnectionPool
 from clients.options import zenoh_connect_option
 from clients.sectorizer import split_scan
 from clients.zenoh_session import open_session
@@ -78,17 +78,18 @@ class Floor:
     """Bare round trips over one transport to `clients.bench.echo`: send `body`, get the seconds it held."""
 
     def __init__(self, transport: Transport, url: str, zenoh_endpoint: str):
-        self._pool: ConnectionPool | None = None
+        self._http: httpx.Client | None = None  # the same stack as HttpClient's sync path
         self._session: zenoh.Session | None = None
         if transport is Transport.HTTP:
-            self._pool = ConnectionPool(url, timeout_s=10.0, connect_timeout_s=5.0)
+            self._http = httpx.Client(base_url=url, timeout=httpx.Timeout(10.0, connect=5.0))
         else:
             self._session = open_session((zenoh_endpoint,))
 
     def round_trip(self, body: bytes) -> float:
-        if self._pool is not None:
+        if self._http is not None:
             headers = {"Content-Type": "application/octet-stream"}
-            answer = self._pool.request("POST", ECHO_PATH, body, headers).body
+            r = self._http.post(ECHO_PATH, content=body, headers=headers)
+            answer = r.raise_for_status().content
         else:
             assert self._session is not None
             block = zenoh.CongestionControl.BLOCK
@@ -97,8 +98,8 @@ class Floor:
         return HELD.unpack_from(answer)[0]
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.close()
+        if self._http is not None:
+            self._http.close()
         if self._session is not None:
             self._session.close()
 
@@ -195,8 +196,6 @@ def spawned_echo() -> Iterator[ConnectConfig]:
 
 
 def _wait_ready(url: str, proc: subprocess.Popen) -> None:
-    import httpx  # the clients' dependency; `phim serve` itself does not need it
-
     deadline = time.monotonic() + READY_TIMEOUT_S
     while time.monotonic() < deadline:
         if proc.poll() is not None:

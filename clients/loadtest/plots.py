@@ -1,5 +1,6 @@
-"""PNG plots of a load test (matplotlib, Agg): latency CDF per step; for a sweep, throughput and p99 against
-the number of vehicles."""
+"""PNG plots of a load test (matplotlib, Agg): latency histogram and tail per step; for a sweep, throughput
+and p99 against the number of vehicles on a log axis, with the offered load (sectors/s) along the top and as
+a line of its own."""
 
 from __future__ import annotations
 
@@ -39,9 +40,10 @@ def latency_plot(report: LoadTestReport, path: Path) -> Path:
         hist.hist(lat, bins=60, histtype="step", label=label)
         tail = 1.0 - np.arange(lat.size) / lat.size  # (n,) fraction of sectors slower than each value
         cdf.plot(lat, tail, label=label)
-    bound = report.config.p99_bound_ms
+    bound = report.config.thresholds.max_p99_ms
     for ax in (hist, cdf):
-        ax.axvline(bound, color="grey", linestyle="--", linewidth=1)
+        if bound is not None:
+            ax.axvline(bound, color="grey", linestyle="--", linewidth=1, label="p99 threshold")
         ax.set_xlabel("latency from scheduled send (ms)")
         ax.legend(fontsize=8)
     hist.set_ylabel("sectors")
@@ -55,24 +57,45 @@ def latency_plot(report: LoadTestReport, path: Path) -> Path:
 
 
 def sweep_plot(report: LoadTestReport, path: Path) -> Path:
+    """Left: offered, answered and detections per second; right: client and server p99. Both against the
+    vehicles on a log axis; the top axis gives the offered load of each count (sectors/s)."""
     plt = _pyplot()
-    v = [s.vehicles for s in report.steps]
-    fig, (thr, p99) = plt.subplots(1, 2, figsize=(11, 4.2))
-    thr.plot(v, [s.offered_sectors_per_s for s in report.steps], "--", color="grey", label="offered")
-    thr.plot(v, [s.achieved_sectors_per_s for s in report.steps], "o-", label="answered")
-    thr.plot(v, [s.predictions_per_s for s in report.steps], "s-", label="predictions")
+    steps = report.steps
+    v = [s.vehicles for s in steps]
+    fig, (thr, p99) = plt.subplots(1, 2, figsize=(11, 4.4))
+    thr.plot(v, [s.offered_sectors_per_s for s in steps], "--", color="grey", label="offered")
+    thr.plot(v, [s.achieved_sectors_per_s for s in steps], "o-", label="answered")
+    thr.plot(v, [s.predictions_per_s for s in steps], "s-", label="predictions")
     thr.set_ylabel("sectors / s")
-    p99.plot(v, [s.p99_ms for s in report.steps], "o-", label="client p99")
-    p99.plot(v, [s.server_total_p99_ms for s in report.steps], "s-", label="server total p99")
-    p99.axhline(report.config.p99_bound_ms, color="grey", linestyle="--", label="bound")
+    p99.plot(v, [s.p99_ms for s in steps], "o-", label="client p99")
+    p99.plot(v, [s.server_total_p99_ms for s in steps], "s-", label="server total p99")
+    failed = [s for s in steps if not s.passed]
+    p99.plot([s.vehicles for s in failed], [s.p99_ms for s in failed], "x", color="red", label="failed")
+    if report.config.thresholds.max_p99_ms is not None:
+        p99.axhline(report.config.thresholds.max_p99_ms, color="grey", linestyle="--", label="p99 threshold")
     p99.set_yscale("log")
     p99.set_ylabel("latency (ms)")
     for ax in (thr, p99):
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(v, [str(n) for n in v])
+        ax.xaxis.set_minor_locator(plt.NullLocator())
         ax.set_xlabel("vehicles")
         ax.legend(fontsize=8)
+        if report.mode == "open":  # offered load is proportional to the vehicles
+            _offered_axis(ax, report).xaxis.set_minor_locator(plt.NullLocator())
     held = report.max_vehicles_held
-    fig.suptitle(f"PHiM {report.transport} sweep: most vehicles held = {held}", fontsize=9)
+    fig.suptitle(f"PHiM {report.transport} {report.mode}-loop sweep: most vehicles held = {held}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _offered_axis(ax, report: LoadTestReport):
+    """A top axis in offered sectors/s (vehicles x sensor rate), ticked at each step."""
+    rate = report.config.turns_per_s * report.sectors_per_turn  # sectors/s one vehicle offers
+    top = ax.secondary_xaxis("top", functions=(lambda n: n * rate, lambda r: r / rate))
+    offered = [s.vehicles * rate for s in report.steps]
+    top.set_xticks(offered, [f"{x:g}" for x in offered])
+    top.set_xlabel("offered sectors / s", fontsize=8)
+    return top

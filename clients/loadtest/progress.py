@@ -1,14 +1,15 @@
-"""A live progress line per step (rich): time, sent, answered, errors, lost so far, in flight, p99."""
+"""A live progress line per step (rich): time, sent, answered, errors, lost so far, in flight, recent p99
+(and the windows judged so far)."""
 
 from __future__ import annotations
 
 import asyncio
 from types import TracebackType
 
-import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 
+from clients.loadtest.hdr import histogram, percentile_ms
 from clients.loadtest.runner import StepRun
 
 
@@ -25,6 +26,7 @@ class LiveProgress:
             disable=not enabled,
         )
         self._task: TaskID | None = None
+        self._total_s = 0.0
 
     def __enter__(self) -> LiveProgress:
         self._progress.start()
@@ -35,20 +37,22 @@ class LiveProgress:
     ) -> None:
         self._progress.stop()
 
-    def start_step(self, vehicles: int, duration_s: float) -> None:
-        self._task = self._progress.add_task(f"{vehicles:>4} vehicles", total=duration_s, stats="")
+    def start_step(self, vehicles: int, total_s: float) -> None:
+        self._total_s = total_s
+        self._task = self._progress.add_task(f"{vehicles:>4} vehicles", total=total_s, stats="")
 
     def tick(self, step: StepRun) -> None:
-        if self._task is None:
+        if self._task is None or not self.enabled:
             return
-        now = asyncio.get_running_loop().time() if step.send_end == 0.0 else step.send_end
         answered = [r for r in step.records if r.answered]
-        recent = np.array([r.latency_ms for r in answered[-2000:]])
-        p99 = f"{np.percentile(recent, 99):.1f}" if recent.size else "-"
+        p99 = percentile_ms(histogram(r.latency_ms for r in answered[-2000:]), 99.0)
         errors = sum(1 for r in answered if not r.ok)
         lost = sum(1 for r in step.records if r.lost is not None)
+        stable = "" if step.stable is None else f"  windows {len(step.windows)} stable {step.stable}"
         stats = (
             f"sent {len(step.records)}  answered {len(answered)}  errors {errors}  lost {lost}  "
-            f"in flight {step.inflight}  p99 {p99} ms"
+            f"in flight {step.inflight}  p99 {p99:.1f} ms{stable}"
         )
-        self._progress.update(self._task, completed=min(now - step.t0, step.duration_s), stats=stats)
+        elapsed = asyncio.get_running_loop().time() - step.t0
+        done = self._total_s if step.send_end else min(elapsed, self._total_s)
+        self._progress.update(self._task, completed=done, stats=stats)

@@ -1,4 +1,5 @@
-"""A load test's results as a table (markdown), JSON and CSV (columns in the spirit of perf_analyzer's)."""
+"""A load test's results as a table (markdown), JSON and CSV (columns in the spirit of perf_analyzer's), and
+its verdict: the run passes when a step passed its thresholds (a sweep: it found a load that holds)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from typing import Any
 from clients.loadtest.config import LoadTestConfig
 from clients.loadtest.stats import StepResult
 
-TOTALS = ("sent", "answered", "ok", "errors", "lost")
+TOTALS = ("sent", "answered", "ok", "errors", "lost", "uncounted")
+PER_STEP_ONLY = ("windows", "series", "samples")  # in `steps`, not repeated in the headline
 CSV_COLUMNS = (
     ("Vehicles", "vehicles"),
     ("Offered Sectors/Second", "offered_sectors_per_s"),
@@ -27,6 +29,7 @@ CSV_COLUMNS = (
     ("Server Compute p50 ms", "server_model_p50_ms"),
     ("Server Total p50 ms", "server_total_p50_ms"),
     ("Server Total p99 ms", "server_total_p99_ms"),
+    ("Error Rate", "error_rate"),
     ("Client Send Lag p99 ms", "send_lag_p99_ms"),
     ("p50 latency ms", "p50_ms"),
     ("p90 latency ms", "p90_ms"),
@@ -34,6 +37,8 @@ CSV_COLUMNS = (
     ("p99.9 latency ms", "p999_ms"),
     ("Max latency ms", "max_ms"),
     ("Avg latency ms", "mean_ms"),
+    ("Stable", "stable"),
+    ("Passed", "passed"),
     ("Held", "held"),
 )
 
@@ -49,9 +54,19 @@ class LoadTestReport:
 
     @property
     def max_vehicles_held(self) -> int | None:
-        """The most vehicles of a step that held (p99 bound, no errors, nothing lost)."""
+        """The most vehicles of an open-loop step that held (passed its thresholds)."""
         held = [s.vehicles for s in self.steps if s.held]
         return max(held) if held else None
+
+    @property
+    def passed(self) -> bool:
+        """A step passed: one step, that one; a sweep found a load that passes."""
+        return any(s.passed for s in self.steps)
+
+    @property
+    def exit_code(self) -> int:
+        """1 when thresholds are enforced and the run did not pass, else 0."""
+        return int(self.config.thresholds.enforced and not self.passed)
 
     @property
     def peak_step(self) -> StepResult:
@@ -87,9 +102,10 @@ def step_dict(s: StepResult) -> dict[str, Any]:
 
 
 def to_json(report: LoadTestReport) -> dict[str, Any]:
-    """Headline keys (sent, answered, errors, lost, achieved_sectors_per_s, p50_ms, p99_ms, ...) are those of
-    `result_step`; `steps` has every step; `totals` adds the counts over all steps."""
-    head = step_dict(report.result_step)
+    """Headline keys (sent, answered, errors, lost, achieved_sectors_per_s, p50_ms, p99_ms, checks, ...) are
+    those of `result_step`; `steps` has every step with its windows, time series and samples; `totals` adds
+    the counts over all steps; `thresholds`, `passed` and `exit_code` give the verdict."""
+    head = {k: v for k, v in step_dict(report.result_step).items() if k not in PER_STEP_ONLY}
     return _clean(
         {
             **head,
@@ -98,7 +114,9 @@ def to_json(report: LoadTestReport) -> dict[str, Any]:
             "source": report.source,
             "sectors_per_turn": report.sectors_per_turn,
             "sweep": report.config.sweep,
-            "p99_bound_ms": report.config.p99_bound_ms,
+            "thresholds": dataclasses.asdict(report.config.thresholds),
+            "passed": report.passed,
+            "exit_code": report.exit_code,
             "max_vehicles_held": report.max_vehicles_held,
             "peak_achieved_sectors_per_s": report.peak_step.achieved_sectors_per_s,
             "peak_vehicles": report.peak_step.vehicles,
@@ -124,6 +142,8 @@ def write_csv(report: LoadTestReport, path: Path) -> None:
 
 
 def _cell(v: Any) -> str:
+    if v is None:
+        return ""
     if isinstance(v, bool):
         return "yes" if v else "no"
     if isinstance(v, float):
@@ -136,10 +156,10 @@ def _ms(v: float) -> str:
 
 
 def table(report: LoadTestReport) -> str:
-    """A markdown table, one row per step, and a closing line on what was held."""
+    """A markdown table, one row per step, and closing lines on the thresholds and the verdict."""
     head = (
         "| vehicles | offered/s | sectors/s | predictions/s | p50 | p90 | p99 | p99.9 | max | "
-        "srv queue | srv model | srv total | errors | lost | held |"
+        "srv queue | srv model | srv total | errors | lost | verdict |"
     )
     rows = [head, "|" + "---|" * (head.count("|") - 1)]
     for s in report.steps:
@@ -149,26 +169,56 @@ def table(report: LoadTestReport) -> str:
             f"| {s.vehicles} | {s.offered_sectors_per_s:.1f} | {s.achieved_sectors_per_s:.1f} | "
             f"{s.predictions_per_s:.1f} | {_ms(s.p50_ms)} | {_ms(s.p90_ms)} | {_ms(s.p99_ms)} | "
             f"{_ms(s.p999_ms)} | {_ms(s.max_ms)} | {_ms(s.server_queue_p50_ms)} | "
-            f"{_ms(s.server_model_p50_ms)} | "
-            f"{_ms(s.server_total_p50_ms)} | {errors} | {lost} | {'yes' if s.held else 'no'} |"
+            f"{_ms(s.server_model_p50_ms)} | {_ms(s.server_total_p50_ms)} | {errors} | {lost} | "
+            f"{_verdict(s)} |"
         )
-    rows += ["", _footer(report)]
+    rows += ["", _footer(report), _thresholds_line(report)]
     return "\n".join(rows)
+
+
+def _verdict(s: StepResult) -> str:
+    """ "passed", or what failed: "p99 31.2 > 25", "error rate 0.12 > 0", "not stable"."""
+    failed = []
+    for name, c in s.checks.items():
+        if c["passed"]:
+            continue
+        if name == "stable":
+            failed.append("not stable")
+        else:
+            value = "-" if not math.isfinite(c["value"]) else f"{c['value']:.4g}"
+            failed.append(f"{name.removesuffix('_ms').replace('_', ' ')} {value} > {c['limit']:g}")
+    return "; ".join(failed) or "passed"
 
 
 def _footer(report: LoadTestReport) -> str:
     cfg = report.config
+    warmup = f" after a {cfg.warmup_s:g} s warm-up" if cfg.warmup_s else ""
+    length = (
+        f"{cfg.duration_s:g} s per step"
+        if cfg.windows is None
+        else f"windows of {cfg.windows.window_s:g} s until {cfg.windows.count} agree within "
+        f"{cfg.windows.stability_pct:g} % (at most {cfg.windows.max_windows})"
+    )
     if report.mode == "closed":
         peak = report.peak_step
         return (
             f"{report.transport}, closed loop (each vehicle sends its next sector when answered), "
-            f"{cfg.duration_s:g} s per step; latency in ms from send. Throughput ceiling: "
+            f"{length}{warmup}; latency in ms from send. Throughput ceiling: "
             f"{peak.achieved_sectors_per_s:.1f} sectors/s with {peak.vehicles} vehicles."
         )
     held = report.max_vehicles_held
     return (
         f"{report.transport}, open loop, {cfg.turns_per_s:g} turns/s x {report.sectors_per_turn} sectors per "
-        f"vehicle, {cfg.duration_s:g} s per step; latency in ms from each sector's scheduled time (server "
-        f"columns: p50 of the reply timings). Most vehicles held (p99 <= {cfg.p99_bound_ms:g} ms, no errors, "
-        f"nothing lost): {held if held is not None else 'none'}."
+        f"vehicle, {length}{warmup}; latency in ms from each sector's scheduled time (server columns: p50 "
+        f"of the reply timings). Most vehicles held: {held if held is not None else 'none'}."
     )
+
+
+def _thresholds_line(report: LoadTestReport) -> str:
+    t = report.config.thresholds
+    limits = [f"p99 <= {t.max_p99_ms:g} ms"] if t.max_p99_ms is not None else []
+    limits += [f"error rate <= {t.max_error_rate:g}"] if t.max_error_rate is not None else []
+    limits += ["stable windows"] if report.config.windows is not None else []
+    verdict = "passed" if report.passed else "failed"
+    how = f"exit code {report.exit_code}" if t.enforced else "not enforced (no threshold given)"
+    return f"Thresholds: {', '.join(limits) or 'none'}; {verdict}, {how}."
