@@ -6,7 +6,7 @@ import enum
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from contract import DEFAULT_KEY_PREFIX
+from contract import DEFAULT_KEY_PREFIX, DEFAULT_URL, DEFAULT_ZENOH_ENDPOINT
 
 if TYPE_CHECKING:
     from clients.base import DetectorClient
@@ -20,8 +20,8 @@ class Transport(enum.StrEnum):
 @dataclass(frozen=True)
 class ConnectConfig:
     transport: Transport = Transport.HTTP
-    url: str = "http://127.0.0.1:8080"  # HTTP address; over zenoh used for model info and ending streams
-    zenoh_connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    url: str = DEFAULT_URL  # HTTP address; over zenoh used for model info and ending streams
+    zenoh_connect: tuple[str, ...] = (DEFAULT_ZENOH_ENDPOINT,)
     zenoh_mode: str = "client"
     zenoh_config_file: str | None = None
     key_prefix: str = DEFAULT_KEY_PREFIX

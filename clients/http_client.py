@@ -24,6 +24,7 @@ import httpx
 
 from clients.base import DetectorClient, OnSent, RequestTimeout, ServerError, TransportError, answer
 from contract import (
+    DEFAULT_URL,
     MSGPACK,
     DetectionsReply,
     ErrorCode,
@@ -40,7 +41,7 @@ BODY_WRITTEN = "http11.send_request_body.complete"  # httpcore's trace event (HT
 
 @dataclass(frozen=True)
 class HttpConfig:
-    url: str = "http://127.0.0.1:8080"
+    url: str = DEFAULT_URL
     timeout_s: float = 10.0  # each send and receive, and waiting for a pooled connection
     connect_timeout_s: float = 5.0
     max_connections: int | None = 256  # open connections, idle or busy, per path (sync, async); None: any

@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 from clients.connect import ConnectConfig, Transport
+from contract import DEFAULT_URL, DEFAULT_ZENOH_ENDPOINT
 from phim.options import EnumValue
 
 Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
@@ -17,7 +18,7 @@ Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
 zenoh_connect_option = click.option(
     "--zenoh-connect",
     envvar="PHIM_ZENOH_CONNECT",
-    default="tcp/127.0.0.1:7447",
+    default=DEFAULT_ZENOH_ENDPOINT,
     show_default=True,
     show_envvar=True,
     help="Zenoh endpoints to connect to, comma-separated.",
@@ -38,7 +39,7 @@ CONNECTION: list[Decorator] = [
     click.option(
         "--url",
         envvar="PHIM_URL",
-        default="http://127.0.0.1:8080",
+        default=DEFAULT_URL,
         show_default=True,
         show_envvar=True,
         help="The server's HTTP address (over zenoh too: model info, ending streams).",

@@ -26,6 +26,7 @@ from clients.http_client import HttpClient
 from clients.zenoh_session import MSGPACK_ENCODING, open_session
 from contract import (
     DEFAULT_KEY_PREFIX,
+    DEFAULT_ZENOH_ENDPOINT,
     DetectionsReply,
     ErrorReply,
     KeySpace,
@@ -45,7 +46,7 @@ class NotSupported(ClientError):
 
 @dataclass(frozen=True)
 class ZenohClientConfig:
-    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    connect: tuple[str, ...] = (DEFAULT_ZENOH_ENDPOINT,)
     mode: str = "client"  # "client" (needs a reachable worker or router at open) or "peer"
     key_prefix: str = DEFAULT_KEY_PREFIX
     timeout_s: float = 10.0  # per get

@@ -1,11 +1,15 @@
-"""The zenoh key space: the key expressions under one prefix (docs/protocol.md, "Zenoh"). Import it from
-`contract`."""
+"""Where a worker is found: its default addresses and the zenoh key space, the key expressions under one
+prefix (docs/protocol.md, "Zenoh"). Import them from `contract`."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 DEFAULT_KEY_PREFIX = "phim/v1"
+# a worker started without options: HTTP on this port of 127.0.0.1, zenoh (a peer) listening on this endpoint
+DEFAULT_HTTP_PORT = 8080
+DEFAULT_URL = f"http://127.0.0.1:{DEFAULT_HTTP_PORT}"
+DEFAULT_ZENOH_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
 @dataclass(frozen=True)

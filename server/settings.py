@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from contract import Limits
+from contract import DEFAULT_HTTP_PORT, DEFAULT_ZENOH_ENDPOINT, Limits
 
 if TYPE_CHECKING:
     from server.worker import WorkerConfig
@@ -35,7 +35,7 @@ class Settings(BaseSettings):
 
     # HTTP
     host: str = Field("127.0.0.1", description="HTTP bind address.")
-    port: int = Field(8080, ge=0, le=65535, description="HTTP port.")
+    port: int = Field(DEFAULT_HTTP_PORT, ge=0, le=65535, description="HTTP port.")
     # model
     checkpoint: Path | None = Field(
         None, description="Weights to serve [default: the embedded default model]."
@@ -66,7 +66,7 @@ class Settings(BaseSettings):
     # zenoh
     zenoh_enabled: bool = Field(True, description="Serve over zenoh as well as HTTP.")
     zenoh_mode: Literal["peer", "client", "router"] = Field("peer", description="Zenoh session mode.")
-    zenoh_listen: Endpoints = Field(("tcp/127.0.0.1:7447",), description="Zenoh endpoints to listen on.")
+    zenoh_listen: Endpoints = Field((DEFAULT_ZENOH_ENDPOINT,), description="Zenoh endpoints to listen on.")
     zenoh_connect: Endpoints = Field((), description="Zenoh endpoints to connect to (a router, other peers).")
     zenoh_config_file: Path | None = Field(None, description="A zenoh JSON5 config file (TLS, ACL, ...).")
     zenoh_multicast_scouting: bool = Field(False, description="Zenoh multicast scouting.")

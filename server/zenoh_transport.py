@@ -28,6 +28,7 @@ import zenoh
 
 from contract import (
     DEFAULT_KEY_PREFIX,
+    DEFAULT_ZENOH_ENDPOINT,
     MSGPACK,
     STREAM_ID_RE,
     DetectionsReply,
@@ -56,7 +57,7 @@ T = TypeVar("T")
 @dataclass(frozen=True)
 class ZenohConfig:
     mode: str = "peer"  # "peer" | "client" | "router"
-    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    listen: tuple[str, ...] = (DEFAULT_ZENOH_ENDPOINT,)
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
     config_file: str | None = None  # a zenoh JSON5 config file; the fields above override it
