@@ -83,8 +83,12 @@ def sweep_plot(report: LoadTestReport, path: Path) -> Path:
         ax.legend(fontsize=8)
         if report.mode == "open":  # offered load is proportional to the vehicles
             _offered_axis(ax, report).xaxis.set_minor_locator(plt.NullLocator())
-    held = report.max_vehicles_held
-    fig.suptitle(f"PHiM {report.transport} {report.mode}-loop sweep: most vehicles held = {held}", fontsize=9)
+    if report.mode == "closed":
+        peak = report.peak_step
+        what = f"throughput ceiling {peak.achieved_sectors_per_s:.1f} sectors/s with {peak.vehicles} vehicles"
+    else:
+        what = f"most vehicles held: {report.max_vehicles_held or 'none'}"
+    fig.suptitle(f"PHiM {report.transport} {report.mode}-loop sweep: {what}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
