@@ -9,19 +9,23 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zenoh
-from conftest import KITTI_VELODYNE
+from conftest import KITTI_VELODYNE, require_samples
 from server_helpers import RunningServer, free_endpoint, serve
 
 from clients.connect import ConnectConfig, Transport
+from clients.loadtest.config import LoadTestConfig, SourceConfig
 from clients.sectorizer import split_scan
 from model.data.readers import read_scan
 from model.stream import StreamingDetector
 from server.zenoh_transport import ZenohConfig, open_session
 
 EVERY = 8  # every 8th point of a KITTI scan: ~15k points a turn, fast CPU forwards
+# the load tests' sectors: synthetic turns (no samples needed), every 8th point: 16k points a turn
+LOADTEST_SOURCE = SourceConfig(folder=None, synthetic_turns=3, every=EVERY)
 
 
 @dataclass(frozen=True)
@@ -39,6 +43,18 @@ class Served:
         )
 
 
+def loadtest_config(served: Served, transport: Transport, **kw: Any) -> LoadTestConfig:
+    """A short load test of `served` at 1 turn/s per vehicle (the tests' defaults; `kw` overrides them)."""
+    base: dict[str, Any] = dict(
+        connect=served.connect(transport),
+        source=LOADTEST_SOURCE,
+        duration_s=1.0,
+        turns_per_s=1.0,
+        drain_timeout_s=30.0,
+    )
+    return LoadTestConfig(**{**base, **kw})
+
+
 @contextlib.contextmanager
 def serve_both(det: StreamingDetector, **overrides: object) -> Iterator[Served]:
     """A real server on loopback: HTTP (uvicorn thread) and zenoh (a peer listening on a free port)."""
@@ -51,7 +67,7 @@ def kitti_turns(indices: range | list[int], every: int = EVERY) -> list[list[tup
     """KITTI scans -> per scan, (sector_index, (N, 4) float32 points) in sweep order (client sectorizer)."""
     turns = []
     for i in indices:
-        scan = read_scan(KITTI_VELODYNE / f"{i:06d}.bin")
+        scan = read_scan(require_samples(KITTI_VELODYNE / f"{i:06d}.bin"))
         turns.append([(s.index, s.points[::every].copy()) for s in split_scan(scan.points, scan.fields, 4)])
     return turns
 

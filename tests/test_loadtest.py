@@ -14,18 +14,16 @@ from typing import Any
 
 import pytest
 from click.testing import CliRunner
-from client_helpers import EVERY, Served, png_is_a_picture, serve_both
-from conftest import KITTI_VELODYNE
+from client_helpers import EVERY, Served, loadtest_config, png_is_a_picture, serve_both
 from server_helpers import default_detector
 
 from clients.connect import Transport
-from clients.loadtest.config import LoadTestConfig, Mode, OutputConfig, SourceConfig, Thresholds
+from clients.loadtest.config import LoadTestConfig, Mode, OutputConfig, Thresholds
 from clients.loadtest.report import LoadTestReport
 from clients.loadtest.run import run_loadtest
 from model.stream import StreamingDetector
 from phim.cli import main as app
 
-SOURCE = SourceConfig(folder=KITTI_VELODYNE, max_scans=3, every=EVERY)
 HEADLINE = ("sent", "answered", "errors", "lost", "achieved_sectors_per_s", "p50_ms", "p99_ms")
 
 
@@ -41,14 +39,7 @@ def served(det: StreamingDetector) -> Iterator[Served]:
 
 
 def config(served: Served, transport: Transport, **kw: Any) -> LoadTestConfig:
-    base: dict[str, Any] = dict(
-        connect=served.connect(transport),
-        source=SOURCE,
-        duration_s=2.0,
-        turns_per_s=1.0,
-        drain_timeout_s=30.0,
-    )
-    return LoadTestConfig(**{**base, **kw})
+    return loadtest_config(served, transport, **{"duration_s": 2.0, **kw})
 
 
 def csv_rows(path: Path) -> list[dict[str, str]]:
@@ -137,7 +128,7 @@ def test_cli_loadtest_and_its_json(served: Served, tmp_path: Path) -> None:
     out = tmp_path / "cli.json"
     args = ["loadtest", "--transport", "zenoh", "--url", served.url, "--zenoh-connect", served.zenoh_endpoint]
     args += ["--vehicles", "1", "--duration", "1", "--turns-per-s", "1", "--every", str(EVERY)]
-    args += ["--data", str(KITTI_VELODYNE), "--max-scans", "2", "--out", str(out), "--no-progress"]
+    args += ["--synthetic", "--out", str(out), "--no-progress"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "| vehicles |" in result.output and "Most vehicles held" in result.output

@@ -17,12 +17,11 @@ from typing import Any
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from client_helpers import EVERY, Served, serve_both
-from conftest import KITTI_VELODYNE
+from client_helpers import EVERY, Served, loadtest_config, serve_both
 from server_helpers import default_detector
 
 from clients.connect import Transport
-from clients.loadtest.config import LoadTestConfig, OutputConfig, SourceConfig, Thresholds, WindowConfig
+from clients.loadtest.config import LoadTestConfig, OutputConfig, Thresholds, WindowConfig
 from clients.loadtest.hdr import PERCENTILES, summary_ms
 from clients.loadtest.report import table
 from clients.loadtest.run import run_loadtest
@@ -30,7 +29,6 @@ from clients.loadtest.stats import StepResult, threshold_checks
 from clients.loadtest.windows import Span, is_stable
 from phim.cli import main as app
 
-SOURCE = SourceConfig(folder=KITTI_VELODYNE, max_scans=3, every=EVERY)
 FORWARD_S = 0.1  # the overloaded server's extra time per forward (one sector per forward)
 DEADLINE_MS = 500.0  # the overloaded server's deadline; the client's timeout (30 s) is far above it
 MAX_SEND_LAG_MS = 50.0  # half a sector period at 10 sectors/s per vehicle
@@ -72,19 +70,12 @@ def backlogged() -> Iterator[Served]:
 
 
 def config(served: Served, transport: Transport = Transport.HTTP, **kw: Any) -> LoadTestConfig:
-    base: dict[str, Any] = dict(
-        connect=served.connect(transport),
-        source=SOURCE,
-        duration_s=1.0,
-        turns_per_s=1.0,
-        drain_timeout_s=30.0,
-    )
-    return LoadTestConfig(**{**base, **kw})
+    return loadtest_config(served, transport, **kw)
 
 
 def cli(served: Served, *extra: str) -> tuple[int, dict[str, Any], str]:
     args = ["loadtest", "--url", served.url, "--duration", "1", "--turns-per-s", "1", "--every", str(EVERY)]
-    args += ["--data", str(KITTI_VELODYNE), "--max-scans", "2", "--no-progress", "--json", *extra]
+    args += ["--synthetic", "--no-progress", "--json", *extra]
     result = CliRunner().invoke(app, args)
     return result.exit_code, json.loads(result.stdout), result.output
 

@@ -22,6 +22,7 @@ from model.data.labels import kitti_labels_for, nuscenes_labels_for
 from model.data.readers import Spin, find_scans, read_scan, write_native_scan
 from phim.cli import main as app
 
+pytestmark = pytest.mark.samples  # every test replays or reads the real KITTI and nuScenes samples
 NUSCENES = (
     SHARED_DATA / "nuscenes_sample" / "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
 )
