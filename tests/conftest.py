@@ -19,7 +19,7 @@ def require_samples(path: Path = SHARED_DATA) -> Path:
     if not path.exists():
         why = (
             f"needs the real LiDAR samples: {path} is missing (put shared/data beside the repository or set "
-            "PHIM_SAMPLES_DIR; README.md, 'Tests')"
+            "PHIM_SAMPLES_DIR: README.md, Quick start)"
         )
         if REQUIRE_SAMPLES:
             pytest.fail(why)
