@@ -10,6 +10,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 import torch
@@ -17,7 +18,7 @@ import uvicorn
 from conftest import kitti_scan
 
 from clients.bench.server import free_port
-from contract import SectorMessage
+from contract import MSGPACK, SectorMessage, encode_sector
 from model.config import tiny
 from model.detector import PHiM
 from model.sectors import split_turn
@@ -60,6 +61,13 @@ def sector_msg(
     return SectorMessage(
         stream_id, seq, seq % 4 if index is None else index, 1000 * seq, points, FIELDS, **kw
     )
+
+
+def post_first_sector(url: str, stream_id: str = "car-1") -> httpx.Response:
+    """POST the first sector of KITTI 000000 (every 4th point) to a server at `url` as msgpack."""
+    body = encode_sector(sector_msg(stream_id, 0, kitti_sectors(0, every=4)[0]))
+    headers = {"Content-Type": MSGPACK}
+    return httpx.post(f"{url}/v1/streams/{stream_id}/sectors", content=body, headers=headers, timeout=60)
 
 
 def run_direct(det: StreamingDetector, sectors: list[np.ndarray]) -> list[Any]:

@@ -22,9 +22,9 @@ import torch
 import yaml
 from conftest import REPO
 from pydantic import ValidationError
-from server_helpers import free_port, kitti_sectors, sector_msg
+from server_helpers import free_port, post_first_sector
 
-from contract import DetectionsReply, decode_response, encode_sector
+from contract import DetectionsReply, decode_response
 from server.settings import Settings
 
 DOCKERFILE = REPO / "Dockerfile"
@@ -111,13 +111,7 @@ def test_image_commands_serve_a_sector_and_stop_cleanly(tmp_path: Path):
         proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path)
         try:
             wait_healthy(env, proc, log)
-            body = encode_sector(sector_msg("car-1", 0, kitti_sectors(0, every=4)[0]))
-            r = httpx.post(
-                f"http://127.0.0.1:{port}/v1/streams/car-1/sectors",
-                content=body,
-                headers={"Content-Type": "application/msgpack"},
-                timeout=60,
-            )
+            r = post_first_sector(f"http://127.0.0.1:{port}")
             reply = decode_response(r.content)
             assert r.status_code == 200 and isinstance(reply, DetectionsReply) and len(reply.scores) > 0
             model = httpx.get(f"http://127.0.0.1:{port}/v1/model", timeout=10).json()

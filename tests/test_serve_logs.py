@@ -16,9 +16,8 @@ from typing import Any
 
 import httpx
 from conftest import REPO
-from server_helpers import free_port, kitti_sectors, sector_msg
+from server_helpers import free_port, post_first_sector
 
-from contract import encode_sector
 from server.logs import JsonFormatter
 
 FIELDS = {"time", "level", "logger", "message"}
@@ -37,13 +36,7 @@ def serve_one_sector(tmp_path: Path, *flags: str, **env: str) -> tuple[str, str]
         try:
             url = f"http://127.0.0.1:{port}"
             wait_ready(url, proc, err)
-            body = encode_sector(sector_msg("car-1", 0, kitti_sectors(0, every=4)[0]))
-            r = httpx.post(
-                f"{url}/v1/streams/car-1/sectors",
-                content=body,
-                headers={"Content-Type": "application/msgpack"},
-                timeout=60,
-            )
+            r = post_first_sector(url)
             assert r.status_code == 200, r.content[:300]
             proc.send_signal(signal.SIGTERM)
             rc = proc.wait(60)
