@@ -8,8 +8,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
@@ -21,6 +22,7 @@ from phim.options import EnumValue, json_option
 if TYPE_CHECKING:
     from clients.loadtest.config import LoadTestConfig, SourceConfig
 
+T = TypeVar("T")
 NewFile = click.Path(dir_okay=False, path_type=Path)
 Folder = click.Path(file_okay=False, path_type=Path)
 
@@ -256,7 +258,7 @@ def replay(
     )
 
 
-def _or_exit(fn, *args):
+def _or_exit(fn: Callable[..., T], *args: Any) -> T:
     """Run; input that cannot be used ends the command with exit code 2, a client error with 1."""
     from clients.base import ClientError
 
