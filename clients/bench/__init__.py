@@ -1,0 +1,1 @@
+"""`phim bench server` and the bare responder that measures its transport floor."""

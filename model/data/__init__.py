@@ -1,1 +1,1 @@
-"""Data: labelled scans from the simulator and from real recordings (see model/data/types.py)."""
+"""Data, numpy only: labelled scans from the simulator and from real recordings (see model/data/types.py)."""

@@ -1,1 +1,1 @@
-"""Training: targets, losses, the streaming training step and loop (`phim train`)."""
+"""Training: losses, the streaming training step and loop (`phim train`); the targets belong to the head."""
