@@ -50,7 +50,7 @@ def load_model(config: str, checkpoint: str | None, device: str, threads: int = 
 
 @click.command()
 @config_option("paper")
-@points_option
+@points_option(kitti_first=False)
 @json_option
 def info(config: str, points: Path | None, as_json: bool) -> None:
     """Parameter count and measured GFLOPs of a config (FLOPs counted on a real forward)."""
@@ -67,7 +67,7 @@ def info(config: str, points: Path | None, as_json: bool) -> None:
 
 @click.command()
 @config_option("tiny")
-@points_option
+@points_option(kitti_first=True)
 @device_option()
 @click.option("--batch", type=click.IntRange(1), default=1, show_default=True, help="Streams per forward.")
 @click.option("--turns", type=click.IntRange(1), default=10, show_default=True, help="Timed turns.")
@@ -108,7 +108,7 @@ def bench_model_cmd(
 
 @click.command()
 @config_option("paper")
-@points_option
+@points_option(kitti_first=True)
 @device_option("cpu")
 @checkpoint_option(None)
 @click.option("--rows", type=click.IntRange(1), default=25, show_default=True, help="Functions to list.")

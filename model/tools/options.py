@@ -80,12 +80,19 @@ threads_option = click.option(
     show_envvar=True,
     help="Torch CPU threads (0: torch's default).",
 )
-points_option = click.option(
-    "--points",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    default=None,
-    help="A KITTI-style float32 (N, 4) .bin scan [default: KITTI 000000 if present, else a synthetic turn].",
-)
+
+
+def points_option(kitti_first: bool) -> Decorator:
+    """--points; without it the command runs on KITTI 000000 where present (`kitti_first`), else a synthetic
+    turn (`model.tools.cli.load_turn`)."""
+    default = "KITTI 000000 if present, else a synthetic turn" if kitti_first else "a synthetic turn"
+    return click.option(
+        "--points",
+        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        help=f"A KITTI-style float32 (N, 4) .bin scan [default: {default}].",
+    )
+
+
 held_out_seed_option = click.option(
     "--seed",
     type=int,
