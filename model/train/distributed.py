@@ -69,6 +69,11 @@ class Dist:
             return torch.autocast("cuda", dtype=torch.bfloat16)
         return contextlib.nullcontext()
 
+    def barrier(self) -> None:
+        """Wait until every rank is here (under DDP)."""
+        if self.world > 1:
+            torch_dist.barrier()
+
     def close(self) -> None:
         if self.world > 1 and torch_dist.is_initialized():
             torch_dist.destroy_process_group()

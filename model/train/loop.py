@@ -216,6 +216,9 @@ def train(
     try:
         clock = _Budget(max_minutes, dist)
         last = _loop(cfg, out, model, step_fn, opt, dist, start, logger, progress, clock)
+        # rank 0 may still be writing the run: a rank that tears its gloo group down while a peer is still
+        # connected can abort at exit ("terminate called without an active exception", seen under load)
+        dist.barrier()
         if last < cfg.steps:
             log.info(
                 "stopped at step %d of %d after %.1f minutes (the --max-minutes budget); state saved, "
