@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On a GPU machine whose python3 already holds a CUDA build of torch (plus numpy, msgpack, click, rich, pytest):
+# On a GPU machine whose python3 already holds a CUDA build of torch (plus numpy, msgspec, click, rich, pytest):
 # the CUDA parity tests, then the model benchmarks for the GPU rows of docs/benchmarks.md and the op counts.
 # Needs the KITTI scans 000000/000001 at ../shared/data/kitti_object/velodyne, as the CPU tests do.
 # Usage: bash scripts/gpu_session.sh [OUTDIR]   (JSON results and logs land in OUTDIR, default runs/gpu)
