@@ -92,8 +92,7 @@ class _VoxelMax(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, vid: Tensor, num_voxels: int) -> Tensor:
-        idx = vid[:, None].expand_as(x)  # (n, C)
-        out = x.new_zeros(num_voxels, x.shape[1]).scatter_reduce_(0, idx, x, "amax", include_self=False)
+        out = _scatter_max(x, vid, num_voxels)
         ctx.save_for_backward(x, vid, out)
         return out  # (V, C)
 
@@ -105,9 +104,19 @@ class _VoxelMax(torch.autograd.Function):
         return (grad / ties).index_select(0, vid) * is_max, None, None
 
 
+def _scatter_max(x: Tensor, vid: Tensor, num_voxels: int) -> Tensor:
+    """(n, C), (n,) voxel ids -> (V, C) max per voxel; 0 in a voxel without points."""
+    idx = vid[:, None].expand_as(x)  # (n, C)
+    return x.new_zeros(num_voxels, x.shape[1]).scatter_reduce_(0, idx, x, "amax", include_self=False)
+
+
 def voxel_max(x: Tensor, vid: Tensor, num_voxels: int) -> Tensor:
-    """(n, C) point features, (n,) int64 voxel ids in [0, V) -> (V, C) max per voxel (no voxel empty)."""
-    return _VoxelMax.apply(x, vid, num_voxels)
+    """(n, C) point features, (n,) int64 voxel ids in [0, V) -> (V, C) max per voxel (no voxel empty).
+
+    Without autograd it is the plain scatter (which torch.compile traces; `model.graph.voxelize`)."""
+    if torch.is_grad_enabled() and x.requires_grad:
+        return _VoxelMax.apply(x, vid, num_voxels)
+    return _scatter_max(x, vid, num_voxels)
 
 
 def _batch_norm(bn: nn.BatchNorm1d, x: Tensor) -> Tensor:
@@ -203,7 +212,7 @@ class PolarVoxelizer(nn.Module):
         if g.vid.numel() == 0:
             feats = torch.zeros(0, self.out_channels, device=device, dtype=weight.dtype)
         else:
-            feats = self._encode(g)
+            feats = self._encode(g.features, g.vid, int(g.keys.shape[0]))
         return SparseTensor(feats, self._decode(g.keys), self.spatial_shape, len(points)), stats
 
     def _base(self, points: list[Tensor], device: torch.device, dtype: torch.dtype) -> Tensor:
@@ -223,19 +232,9 @@ class PolarVoxelizer(nn.Module):
 
     def _group(self, points: list[Tensor], counts: list[int], device: torch.device, dtype) -> _Grouped:
         """Bin points into voxels, drop out-of-range ones, sort by voxel key (= linear_key order)."""
-        gr, n_p = self.grid, self.point_features
         n_r, n_t, n_z = self.spatial_shape
         base = self._base(points, device, dtype)  # (P + 5, N)
-        z, r, theta = base[2], base[n_p], base[n_p + 4]
-        # in range => scaled values >= 0, so truncation is floor; the clamp catches rounding at the top edge
-        ri = ((r - gr.r_min) * (1.0 / gr.r_size)).long().clamp_(0, n_r - 1)
-        ti = ((theta + math.pi) * (1.0 / gr.theta_size)).long().clamp_(0, n_t - 1)  # +pi -> last bin
-        zi = ((z - gr.z_min) * (1.0 / gr.z_size)).long().clamp_(0, n_z - 1)
-        # offsets from the voxel centre: radial, arc length r * dtheta, height
-        torch.sub(r, ri * gr.r_size + (gr.r_min + 0.5 * gr.r_size), out=base[n_p + 1])
-        torch.mul(r, theta - (ti * gr.theta_size + (0.5 * gr.theta_size - math.pi)), out=base[n_p + 2])
-        torch.sub(z, zi * gr.z_size + (gr.z_min + 0.5 * gr.z_size), out=base[n_p + 3])
-        in_range = (r >= gr.r_min) & (r < gr.r_max) & (z >= gr.z_min) & (z < gr.z_max)  # (N,)
+        ri, ti, zi, in_range = self._bin(base)  # (N,) each
         batch = torch.repeat_interleave(
             torch.arange(len(counts), device=device),
             torch.tensor(counts, device=device, dtype=torch.int64),
@@ -252,10 +251,29 @@ class PolarVoxelizer(nn.Module):
         new_voxel[1:] = sorted_key[1:] != sorted_key[:-1]
         vid = new_voxel.long().cumsum_(0).sub_(1)  # (n,)
         keys = sorted_key[new_voxel]  # (V,)
-        return _Grouped(self._features(base, order, vid, int(keys.shape[0])), vid, keys, kept_per_item)
+        npts = torch.bincount(vid, minlength=int(keys.shape[0]))  # (V,) points per voxel
+        return _Grouped(self._features(base, order, vid, npts), vid, keys, kept_per_item)
 
-    def _features(self, base: Tensor, order: Tensor, vid: Tensor, num_voxels: int) -> Tensor:
-        """-> (P + 9, n) VFE input of the kept points in voxel order (layout in the module docstring)."""
+    def _bin(self, base: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Voxel indices of the points of `base` (P + 5, N), from `_base`: -> r, theta, z index (N,) int64 and
+        in range (N,) bool. Writes the offsets from the voxel centre into base's 3 free rows."""
+        gr, n_p = self.grid, self.point_features
+        n_r, n_t, n_z = self.spatial_shape
+        z, r, theta = base[2], base[n_p], base[n_p + 4]
+        # in range => scaled values >= 0, so truncation is floor; the clamp catches rounding at the top edge
+        ri = ((r - gr.r_min) * (1.0 / gr.r_size)).long().clamp_(0, n_r - 1)
+        ti = ((theta + math.pi) * (1.0 / gr.theta_size)).long().clamp_(0, n_t - 1)  # +pi -> last bin
+        zi = ((z - gr.z_min) * (1.0 / gr.z_size)).long().clamp_(0, n_z - 1)
+        # offsets from the voxel centre: radial, arc length r * dtheta, height
+        torch.sub(r, ri * gr.r_size + (gr.r_min + 0.5 * gr.r_size), out=base[n_p + 1])
+        torch.mul(r, theta - (ti * gr.theta_size + (0.5 * gr.theta_size - math.pi)), out=base[n_p + 2])
+        torch.sub(z, zi * gr.z_size + (gr.z_min + 0.5 * gr.z_size), out=base[n_p + 3])
+        in_range = (r >= gr.r_min) & (r < gr.r_max) & (z >= gr.z_min) & (z < gr.z_max)  # (N,)
+        return ri, ti, zi, in_range
+
+    def _features(self, base: Tensor, order: Tensor, vid: Tensor, npts: Tensor) -> Tensor:
+        """-> (P + 9, n) VFE input of the points base[:, order] (layout in the module docstring); vid (n,)
+        their voxel ids, npts (V,) the points per voxel (>= 1 wherever a point lies)."""
         n_p = self.point_features
         feats = base.new_empty(n_p + EXTRA_FEATURES, order.shape[0])
         torch.index_select(base, 1, order, out=feats[: n_p + 5])  # raw, r, centre offsets, theta
@@ -263,9 +281,9 @@ class PolarVoxelizer(nn.Module):
         inv_r = 1.0 / r.clamp_min(1e-6)
         torch.mul(y, inv_r, out=feats[n_p + 4])  # sin(theta), overwrites theta
         torch.mul(x, inv_r, out=feats[n_p + 5])  # cos(theta)
-        total = centre.new_zeros(3, num_voxels).index_add_(1, vid, centre)  # (3, V)
-        npts = torch.bincount(vid, minlength=num_voxels).to(total.dtype)  # (V,)
-        torch.sub(centre, (total / npts).index_select(1, vid), out=feats[n_p + 6 :])  # cluster offsets
+        total = centre.new_zeros(3, npts.shape[0]).index_add_(1, vid, centre)  # (3, V)
+        mean = total / npts.to(total.dtype)  # (3, V)
+        torch.sub(centre, mean.index_select(1, vid), out=feats[n_p + 6 :])  # cluster offsets
         return feats
 
     def _decode(self, keys: Tensor) -> Tensor:
@@ -277,11 +295,11 @@ class PolarVoxelizer(nn.Module):
         rest = rest // n_r
         return torch.stack([rest // n_t, r, rest % n_t, z], dim=1)
 
-    def _encode(self, g: _Grouped) -> Tensor:
-        """Dynamic VFE over the grouped points -> (V, out_channels) voxel features."""
-        num_voxels = int(g.keys.shape[0])
-        h, voxel = g.features.t(), None  # (n, P + 9) view of the column-major input
+    def _encode(self, features: Tensor, vid: Tensor, num_voxels: int) -> Tensor:
+        """Dynamic VFE over grouped points, features (P + 9, n) from `_features`, vid (n,) in [0, V) ->
+        (V, out_channels) voxel features."""
+        h, voxel = features.t(), None  # (n, P + 9) view of the column-major input
         for layer in self.layers[:-1]:
-            h = layer(h, voxel, g.vid)  # (n, width)
-            voxel = voxel_max(h, g.vid, num_voxels)  # (V, width)
-        return self.layers[-1].pooled(h, voxel, g.vid, num_voxels)  # (V, out_channels)
+            h = layer(h, voxel, vid)  # (n, width)
+            voxel = voxel_max(h, vid, num_voxels)  # (V, width)
+        return self.layers[-1].pooled(h, voxel, vid, num_voxels)  # (V, out_channels)

@@ -1,0 +1,61 @@
+"""The polar voxelizer with fixed shapes: a padded batch of points -> `Sites` of a fixed capacity + features.
+
+The fixed-shape twin of `PolarVoxelizer.forward` in eval mode, on the same modules and weights (its binning,
+per-point feature columns and folded VFE layers). Points come as one padded (B, Np, C) tensor with a count
+per batch item; padding points and out-of-range points go to a dump voxel (row cap) that is cut off at the
+end, like the voxels beyond the capacity when there are more than `cap` (then `sites.overflow` is true).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
+from model.layers.voxelize import PolarVoxelizer
+
+
+def _point_keys(vox: PolarVoxelizer, base: Tensor, real: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """base (P + 5, B * Np) from `_base`, real (B, Np) bool -> voxel key per point (B * Np,) (SENTINEL unless
+    kept), kept per batch item (B,), out of range per batch item (B,)."""
+    n_r, n_t, n_z = vox.spatial_shape
+    n_b, n_pts = real.shape
+    ri, ti, zi, in_range = vox._bin(base)  # (B * Np,) each
+    batch = torch.arange(n_b, device=base.device).unsqueeze(1).expand(n_b, n_pts).reshape(-1)  # (B * Np,)
+    real = real.reshape(-1)
+    kept = real & in_range  # (B * Np,)
+    key = ((batch * n_t + ti) * n_r + ri) * n_z + zi  # (B * Np,) linear_key order
+    key = torch.where(kept, key, SENTINEL)
+    n_kept = kept.view(n_b, n_pts).sum(dim=1)  # (B,)
+    n_out = (real & ~in_range).view(n_b, n_pts).sum(dim=1)  # (B,)
+    return key, n_kept, n_out
+
+
+@torch.no_grad()
+def voxelize_fixed(
+    vox: PolarVoxelizer, points: Tensor, counts: Tensor, cap: int
+) -> tuple[Sites, Tensor, Tensor, Tensor]:
+    """points (B, Np, C >= 4) float32, row j of item b real iff j < counts[b]; counts (B,) int64 ->
+    (Sites of cap rows, features (cap, out_channels), points kept (B,), points out of range (B,)).
+
+    Equals `vox.forward([points[b, :counts[b]] for b])` in eval mode on the real rows when cap >= the voxel
+    count; padding rows of the features are zero. Needs `vox` in eval mode (the folded VFE).
+    """
+    if vox.training:
+        raise ValueError("voxelize_fixed runs the eval-mode VFE: call vox.eval() first")
+    n_b, n_pts, n_c = points.shape
+    dtype = vox.layers[0].linear.weight.dtype
+    real = torch.arange(n_pts, device=points.device).unsqueeze(0) < counts.unsqueeze(1)  # (B, Np)
+    clean = torch.where(real.unsqueeze(2), points, 0.0)  # padding rows may hold anything
+    base = vox._base([clean.reshape(n_b * n_pts, n_c)], points.device, dtype)  # (P + 5, B * Np)
+    key, n_kept, n_out = _point_keys(vox, base, real)
+    sorted_key, order = torch.sort(key, stable=True)  # (B * Np,)
+    keys, vid, count = compact_sorted(sorted_key, cap)  # (cap,), (B * Np,) in [0, cap], ()
+    npts = torch.zeros(cap + 1, dtype=dtype, device=points.device).index_add_(
+        0, vid, torch.ones_like(sorted_key, dtype=dtype)
+    )  # (cap + 1,) points per voxel; the dump row cap holds the rest
+    feats = vox._features(base, order, vid, npts.clamp_min(1.0))  # (P + 9, B * Np)
+    out = vox._encode(feats, vid, cap + 1)[:cap]  # (cap, out_channels)
+    sites = make_sites(keys, vox.spatial_shape, n_b, count)
+    out = torch.where(sites.valid.unsqueeze(1), out, 0.0)
+    return sites, out, n_kept, n_out

@@ -1,0 +1,238 @@
+"""The fixed-shape sparse convs and voxelizer (model/graph) against their eager rule-book twins."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import Tensor
+
+from model.config import PolarGridConfig, VFEConfig, paper, tiny
+from model.data.samples import KITTI_000000
+from model.geometry.rulebook import Plane
+from model.geometry.sparse_tensor import SparseTensor, linear_key
+from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
+from model.graph.sparse_conv import conv_fixed, inverse_table, strided_sites, subm_table
+from model.graph.voxelize import voxelize_fixed
+from model.layers.sparse_conv import SparseConv2d, SparseInverseConv2d
+from model.layers.voxelize import PolarVoxelizer
+from model.sectors import load_kitti_bin, split_turn
+
+SHAPE = (12, 10, 7)  # (R, THETA, Z)
+BATCH = 3
+
+
+def random_sites(n: int, cap: int, seed: int, shape: tuple[int, int, int] = SHAPE) -> tuple[Sites, Tensor]:
+    """n unique random sites over BATCH items in cap rows -> (Sites, (n, 4) coords in key order)."""
+    g = torch.Generator().manual_seed(seed)
+    n_r, n_t, n_z = shape
+    flat = torch.randperm(BATCH * n_r * n_t * n_z, generator=g)[:n]  # (n,) unique cells
+    coords = torch.stack(
+        (flat // (n_r * n_t * n_z), flat // (n_t * n_z) % n_r, flat // n_z % n_t, flat % n_z), dim=1
+    )
+    keys, _ = torch.sort(linear_key(coords, shape))
+    padded = torch.cat((keys, torch.full((cap - n,), SENTINEL)))  # (cap,)
+    out, _, count = compact_sorted(padded, cap)
+    sites = make_sites(out, shape, BATCH, count)
+    return sites, sites.coords[:n]
+
+
+def padded_features(n: int, cap: int, channels: int) -> Tensor:
+    """(cap, C) features: random on the n real rows, huge values on the padding rows (they must not leak)."""
+    return torch.cat((torch.randn(n, channels), torch.full((cap - n, channels), 1e6)))
+
+
+def test_compact_sorted_dedups_pads_and_flags_overflow() -> None:
+    keys = torch.tensor([3, 3, 5, 9, 9, 9, 12, SENTINEL, SENTINEL])
+    out, row, count = compact_sorted(keys, 6)
+    assert out.tolist() == [3, 5, 9, 12, SENTINEL, SENTINEL]
+    assert row.tolist() == [0, 0, 1, 2, 2, 2, 3, 6, 6]
+    assert int(count) == 4
+    out, row, count = compact_sorted(keys, 2)
+    assert out.tolist() == [3, 5]
+    assert row.tolist() == [0, 0, 1, 2, 2, 2, 2, 2, 2]
+    assert int(count) == 4
+
+
+def test_sites_padding_rows() -> None:
+    sites, coords = random_sites(40, 50, seed=1)
+    assert sites.cap == 50 and int(sites.count) == 40 and not bool(sites.overflow)
+    assert sites.valid.tolist() == [True] * 40 + [False] * 10
+    assert torch.equal(sites.coords[40:], torch.tensor([[BATCH, 0, 0, 0]]).expand(10, 4))
+    assert bool((coords[:, 1:] < torch.tensor(SHAPE)).all())
+
+
+@pytest.mark.parametrize("plane", [Plane.RZ, Plane.THETA_Z])
+@pytest.mark.parametrize("kernel", [(3, 3), (3, 5), (3, 1)])
+@pytest.mark.parametrize("n", [0, 1, 150])
+def test_subm_conv_matches_rulebook_conv(plane: Plane, kernel: tuple[int, int], n: int) -> None:
+    cap = n + 13
+    sites, coords = random_sites(n, cap, seed=n + kernel[1])
+    conv = SparseConv2d(5, 6, kernel, (1, 1), plane, subm=True, bias=True)
+    x = padded_features(n, cap, 5)
+    with torch.no_grad():
+        ref, _ = conv(SparseTensor(x[:n], coords, SHAPE, BATCH))
+        table = subm_table(sites, kernel, plane)
+        out = conv_fixed(x, table, conv.weight, conv.bias)
+    assert table.shape == (cap, kernel[0] * kernel[1])
+    assert bool((table[n:] == cap).all())  # padding rows read only the zero row
+    torch.testing.assert_close(out[:n], ref.features, atol=1e-5, rtol=1e-5)
+
+
+STRIDED = [
+    (Plane.RZ, (3, 3), (2, 2)),
+    (Plane.THETA_Z, (3, 3), (2, 2)),
+    (Plane.RZ, (5, 5), (4, 4)),
+    (Plane.THETA_Z, (5, 5), (4, 4)),
+    (Plane.THETA_Z, (3, 1), (2, 1)),
+    (Plane.RZ, (3, 1), (2, 1)),
+]
+
+
+@pytest.mark.parametrize(("plane", "kernel", "stride"), STRIDED)
+@pytest.mark.parametrize("n", [0, 7, 200])
+def test_strided_conv_and_inverse_match_rulebook_convs(
+    plane: Plane, kernel: tuple[int, int], stride: tuple[int, int], n: int
+) -> None:
+    cap = n + 11
+    sites, coords = random_sites(n, cap, seed=3 * n + kernel[0])
+    conv = SparseConv2d(4, 6, kernel, stride, plane, bias=True)
+    inv = SparseInverseConv2d(6, 3, kernel, plane, bias=True)
+    x = padded_features(n, cap, 4)
+    with torch.no_grad():
+        ref, rb = conv(SparseTensor(x[:n], coords, SHAPE, BATCH))
+        ref_back = inv(ref, rb)
+        out_sites, table = strided_sites(sites, kernel, stride, plane, out_cap=rb.num_out + 9)
+        out = conv_fixed(x, table, conv.weight, conv.bias)
+        back = conv_fixed(out, inverse_table(sites, out_sites, kernel, stride, plane), inv.weight, inv.bias)
+    m = rb.num_out
+    assert out_sites.spatial_shape == rb.out_shape
+    assert int(out_sites.count) == m and not bool(out_sites.overflow)
+    assert torch.equal(out_sites.coords[:m], rb.out_coords)
+    assert torch.equal(out_sites.keys[:m], linear_key(rb.out_coords, rb.out_shape))
+    assert bool((out_sites.keys[m:] == SENTINEL).all()) and bool((table[m:] == cap).all())
+    torch.testing.assert_close(out[:m], ref.features, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(back[:n], ref_back.features, atol=1e-5, rtol=1e-5)
+
+
+def test_strided_overflow_is_flagged_and_finite() -> None:
+    sites, coords = random_sites(200, 220, seed=5)
+    conv = SparseConv2d(4, 6, 3, (2, 2), Plane.RZ, bias=True)
+    with torch.no_grad():
+        ref, rb = conv(SparseTensor(torch.randn(200, 4), coords, SHAPE, BATCH))
+        small, table = strided_sites(sites, 3, (2, 2), Plane.RZ, out_cap=rb.num_out - 5)
+        out = conv_fixed(torch.randn(220, 4), table, conv.weight, conv.bias)
+        inv_table = inverse_table(sites, small, 3, (2, 2), Plane.RZ)
+    assert bool(small.overflow) and int(small.count) == rb.num_out
+    assert torch.equal(small.coords, ref.coords[: small.cap])  # the first sites in key order are kept
+    assert bool(torch.isfinite(out).all()) and bool((inv_table <= small.cap).all())
+
+
+# ---- voxelizer ---------------------------------------------------------------------------------------------
+
+
+def make_voxelizer(grid: PolarGridConfig, vfe: VFEConfig, out: int) -> PolarVoxelizer:
+    """A voxelizer in eval mode with random, non-trivial BN statistics."""
+    vox = PolarVoxelizer(grid, vfe, out)
+    for layer in vox.layers:
+        bn = layer.norm
+        bn.running_mean.uniform_(-0.5, 0.5)
+        bn.running_var.uniform_(0.5, 2.0)
+        bn.weight.data.uniform_(0.5, 1.5)
+        bn.bias.data.uniform_(-0.2, 0.2)
+    return vox.eval()
+
+
+def pad_points(sectors: list[Tensor], fill: float = math.nan) -> tuple[Tensor, Tensor]:
+    """list of (N_b, C) -> (B, max N_b + 3, C) padded with `fill`, counts (B,) int64."""
+    n = max(int(s.shape[0]) for s in sectors) + 3
+    out = torch.full((len(sectors), n, sectors[0].shape[1]), fill)
+    for b, s in enumerate(sectors):
+        out[b, : s.shape[0]] = s
+    return out, torch.tensor([int(s.shape[0]) for s in sectors])
+
+
+def check_voxelizer(vox: PolarVoxelizer, sectors: list[Tensor]) -> None:
+    """voxelize_fixed == vox.forward on the real rows (cap above the voxel count); overflow below it."""
+    points, counts = pad_points(sectors)
+    with torch.no_grad():
+        ref, stats = vox(sectors)
+    v = ref.num_sites
+    sites, feats, kept, out_of_range = voxelize_fixed(vox, points, counts, v + 100)
+    assert int(sites.count) == v and not bool(sites.overflow)
+    assert torch.equal(sites.coords[:v], ref.coords)
+    assert torch.equal(sites.keys[:v], linear_key(ref.coords, ref.spatial_shape))
+    assert bool((sites.keys[v:] == SENTINEL).all()) and bool((feats[v:] == 0).all())
+    torch.testing.assert_close(feats[:v], ref.features, atol=1e-4, rtol=1e-4)
+    assert kept.tolist() == stats.points_kept and out_of_range.tolist() == stats.points_out_of_range
+    small, feats, *_ = voxelize_fixed(vox, points, counts, max(v // 2, 1))
+    assert bool(small.overflow) and int(small.count) == v and bool(torch.isfinite(feats).all())
+
+
+@pytest.mark.samples
+@pytest.mark.parametrize("config", [tiny, paper])
+def test_voxelize_fixed_matches_voxelizer_on_kitti(config) -> None:
+    cfg = config()
+    vox = make_voxelizer(cfg.grid, cfg.vfe, 16)
+    check_voxelizer(vox, split_turn(load_kitti_bin(str(KITTI_000000)), 4))
+
+
+def test_voxelize_fixed_matches_voxelizer_with_out_of_range_points() -> None:
+    vox = make_voxelizer(tiny().grid, VFEConfig(point_features=4, hidden=(6,)), 8)
+    g = torch.Generator().manual_seed(2)
+    sectors = []
+    for n in (500, 0, 1, 900):
+        r = torch.rand(n, generator=g) * 60.0  # r_max 52.2, r_min 1: some beyond, some inside
+        t = (torch.rand(n, generator=g) * 2 - 1) * math.pi
+        z = torch.rand(n, generator=g) * 8.0 - 4.0  # z in [-3, 3) is in range
+        sectors.append(torch.stack((r * t.cos(), r * t.sin(), z, torch.rand(n, generator=g)), dim=1))
+    sectors[3][:40] = sectors[3][40:80]  # duplicate points: voxels with several points
+    check_voxelizer(vox, sectors)
+
+
+def test_voxelize_fixed_needs_eval_mode() -> None:
+    vox = make_voxelizer(tiny().grid, VFEConfig(), 8).train()
+    with pytest.raises(ValueError, match="eval"):
+        voxelize_fixed(vox, torch.zeros(1, 4, 4), torch.tensor([4]), 8)
+
+
+# ---- torch.compile(fullgraph=True) -------------------------------------------------------------------------
+
+# inductor's CPU backend imports code that still uses torch.jit.script_method (torch 2.13)
+COMPILE_WARNINGS = pytest.mark.filterwarnings("ignore:`torch.jit.script_method`:DeprecationWarning")
+
+
+@COMPILE_WARNINGS
+def test_compiled_subm_conv_matches_eager() -> None:
+    sites, _ = random_sites(150, 170, seed=7)
+    conv = SparseConv2d(5, 6, 3, (1, 1), Plane.RZ, subm=True, bias=True)
+    x = padded_features(150, 170, 5)
+
+    def step(keys: Tensor, coords: Tensor, count: Tensor, x: Tensor, w: Tensor, b: Tensor) -> Tensor:
+        s = Sites(keys, coords, SHAPE, BATCH, count)
+        return conv_fixed(x, subm_table(s, (3, 3), Plane.RZ), w, b)
+
+    compiled = torch.compile(step, fullgraph=True, dynamic=False)
+    args = (sites.keys, sites.coords, sites.count, x, conv.weight.detach(), conv.bias.detach())
+    torch.testing.assert_close(compiled(*args), step(*args), atol=1e-5, rtol=1e-5)
+
+
+@COMPILE_WARNINGS
+def test_compiled_voxelize_fixed_matches_eager() -> None:
+    vox = make_voxelizer(tiny().grid, VFEConfig(point_features=4, hidden=(6,)), 8)
+    g = torch.Generator().manual_seed(3)
+    r = torch.rand(2, 1000, generator=g) * 50.0 + 1.5
+    t = (torch.rand(2, 1000, generator=g) * 2 - 1) * math.pi
+    points = torch.stack((r * t.cos(), r * t.sin(), torch.rand(2, 1000, generator=g) * 6 - 3, r / 50), dim=2)
+    counts = torch.tensor([1000, 700])
+
+    def step(points: Tensor, counts: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        sites, feats, kept, out = voxelize_fixed(vox, points, counts, 2048)
+        return sites.keys, sites.count, feats, kept, out
+
+    got = torch.compile(step, fullgraph=True, dynamic=False)(points, counts)
+    want = step(points, counts)
+    for a, b in zip(got[:2] + got[3:], want[:2] + want[3:], strict=True):
+        assert torch.equal(a, b)
+    torch.testing.assert_close(got[2], want[2], atol=1e-4, rtol=1e-4)
