@@ -25,6 +25,14 @@ class ScanImpl(enum.StrEnum):
     TRITON = "triton"  # the chunked algorithm in three Triton kernels; CUDA only
 
 
+class Engine(enum.StrEnum):
+    """How a streaming step runs (the weights are the same)."""
+
+    EAGER = "eager"  # model.stream.StreamingDetector: data-dependent shapes, the reference
+    FIXED = "fixed"  # model.graph: the fixed-shape step, run op by op (the graph's own plain twin)
+    GRAPH = "graph"  # model.graph: the fixed-shape step through torch.compile(fullgraph=True)
+
+
 class HeadingCode(enum.StrEnum):
     """How the head encodes a box's yaw."""
 

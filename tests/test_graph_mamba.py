@@ -216,7 +216,6 @@ def test_padding_rows_change_no_valid_output():
 
 
 # torch's inductor imports a module that warns about its own use of torch.jit (torch 2.13)
-@pytest.mark.filterwarnings("ignore:`torch.jit.script_method` is deprecated:DeprecationWarning")
 def test_compiled_stream_step_equals_eager():
     S, T, d = 6, 256, 16
     m = _layer(d, True, chunk_size=32)

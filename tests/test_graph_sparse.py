@@ -199,11 +199,7 @@ def test_voxelize_fixed_needs_eval_mode() -> None:
 
 # ---- torch.compile(fullgraph=True) -------------------------------------------------------------------------
 
-# inductor's CPU backend imports code that still uses torch.jit.script_method (torch 2.13)
-COMPILE_WARNINGS = pytest.mark.filterwarnings("ignore:`torch.jit.script_method`:DeprecationWarning")
 
-
-@COMPILE_WARNINGS
 def test_compiled_subm_conv_matches_eager() -> None:
     sites, _ = random_sites(150, 170, seed=7)
     conv = SparseConv2d(5, 6, 3, (1, 1), Plane.RZ, subm=True, bias=True)
@@ -218,7 +214,6 @@ def test_compiled_subm_conv_matches_eager() -> None:
     torch.testing.assert_close(compiled(*args), step(*args), atol=1e-5, rtol=1e-5)
 
 
-@COMPILE_WARNINGS
 def test_compiled_voxelize_fixed_matches_eager() -> None:
     vox = make_voxelizer(tiny().grid, VFEConfig(point_features=4, hidden=(6,)), 8)
     g = torch.Generator().manual_seed(3)

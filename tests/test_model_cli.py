@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from phim.cli import main as app
@@ -47,8 +48,23 @@ def test_bench_ops_credits_every_op_to_a_model_function() -> None:
     rows = {r["where"]: r for r in report["rows"]}
     assert report["device"] == "cpu" and report["cuda_kernels"] is None
     assert sum(r["ops"] for r in rows.values()) == report["ops"] > report["ops_outside_scan"] > 0
-    assert sum(r["syncs"] for r in rows.values()) == report["syncs"] > 0
+    assert sum(r["host_syncs"] for r in rows.values()) == report["host_syncs"] > 0
     # the Mamba layers, the rule books (their `nonzero` waits for a GPU) and the chunked scan are all seen
     assert rows["model/layers/mamba.py: forward"]["ops"] > 0
-    assert rows["model/geometry/rulebook.py: build_strided_rulebook"]["syncs"] > 0
+    assert rows["model/geometry/rulebook.py: build_strided_rulebook"]["host_syncs"] > 0
     assert any(w.startswith("model/ops/scan_torch.py") for w in rows)
+
+
+@pytest.mark.parametrize("config", ["tiny", "paper"])
+def test_the_graph_step_never_waits_for_the_device(config: str, tmp_path) -> None:
+    """`phim bench ops --engine graph`: no op between the inputs on the device and the host copy syncs."""
+    from model.data.synthetic import synthetic_turn
+
+    points = tmp_path / "turn.bin"
+    synthetic_turn(seed=0)[::8].astype(np.float32).tofile(points)  # thinned: paper runs a few CPU steps
+    args = ["bench", "ops", "--config", config, "--engine", "graph", "--points", str(points), "--json"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output.strip().splitlines()[-1])
+    assert report["engine"] == "graph" and report["ops"] > 100
+    assert report["host_syncs"] == 0, [r for r in report["rows"] if r["host_syncs"]]

@@ -114,6 +114,35 @@ def segmented_scan(
     return y, torch.where((segs.last >= 0)[:, None, None], h_last, h0.to(cd))
 
 
+@torch.library.custom_op("phim::segmented_scan", mutates_args=())
+def segmented_scan_op(
+    u: Tensor,
+    delta: Tensor,
+    A: Tensor,
+    B: Tensor,
+    C: Tensor,
+    start: Tensor,
+    valid: Tensor,
+    seg: Tensor,
+    last: Tensor,
+    h0: Tensor | None,
+    chunk_size: int,
+) -> tuple[Tensor, Tensor]:
+    """`segmented_scan` as a torch custom op: torch.compile calls it as one opaque op (inductor's CPU code
+    for the unrolled chunk loop recomputes the chain and runs 3-4x slower than these aten ops), and a
+    device kernel can register under the same name. Returns (y (T, D), final states (S, D, N), or (0,)
+    without h0)."""
+    y, final = segmented_scan(u, delta, A, B, C, Segments(start, valid, seg, last), h0, chunk_size)
+    return y.contiguous(), final.contiguous() if final is not None else u.new_zeros(0)
+
+
+@segmented_scan_op.register_fake
+def _(u, delta, A, B, C, start, valid, seg, last, h0, chunk_size):
+    T, D = u.shape
+    final = u.new_empty(0) if h0 is None else h0.new_empty(h0.shape, dtype=_compute_dtype(u, delta, A, B, C))
+    return u.new_empty(T, D), final
+
+
 def _conv_indices(segs: Segments, w: int) -> tuple[Tensor, Tensor]:
     """Gather indices into ext = [x (T, di); state columns (S' * w, di)] (row T + s * w + c = column c of
     stream s's conv state, oldest first). Returns (older (w, T): row i = the input w - i steps before each
@@ -169,9 +198,11 @@ def mamba_forward(
     delta = F.softplus(layer.dt_proj(dt))  # (T, di)
     A = -torch.exp(layer.A_log.to(torch.promote_types(layer.A_log.dtype, torch.float32)))  # (di, n | 1)
     h0 = None if state is None else state.ssm
-    y, ssm = segmented_scan(xc, delta, A, B, C, segs, h0, cfg.chunk_size)  # (T, di)
+    y, ssm = segmented_scan_op(
+        xc, delta, A, B, C, segs.start, segs.valid, segs.seg, segs.last, h0, cfg.chunk_size
+    )  # (T, di), (S, di, N) or (0,)
     y = (y + xc * layer.D.to(y.dtype)) * F.silu(z)  # (T, di)
     out = layer.out_proj(y)  # (T, d_model)
-    if state is None or ssm is None:
+    if state is None:
         return out, None
     return out, MambaState(conv=new_conv, ssm=ssm)

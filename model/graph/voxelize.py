@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
+from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites, scatter_sum
 from model.layers.voxelize import PolarVoxelizer
 
 
@@ -51,9 +51,8 @@ def voxelize_fixed(
     key, n_kept, n_out = _point_keys(vox, base, real)
     sorted_key, order = torch.sort(key, stable=True)  # (B * Np,)
     keys, vid, count = compact_sorted(sorted_key, cap)  # (cap,), (B * Np,) in [0, cap], ()
-    npts = torch.zeros(cap + 1, dtype=dtype, device=points.device).index_add_(
-        0, vid, torch.ones_like(sorted_key, dtype=dtype)
-    )  # (cap + 1,) points per voxel; the dump row cap holds the rest
+    ones = torch.ones_like(sorted_key, dtype=dtype)
+    npts = scatter_sum(torch.zeros(cap + 1, dtype=dtype, device=points.device), vid, ones)  # (cap + 1,)
     feats = vox._features(base, order, vid, npts.clamp_min(1.0))  # (P + 9, B * Np)
     out = vox._encode(feats, vid, cap + 1)[:cap]  # (cap, out_channels)
     sites = make_sites(keys, vox.spatial_shape, n_b, count)

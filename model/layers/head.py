@@ -169,7 +169,7 @@ def local_maxima(hm: Tensor) -> Tensor:
 
 
 @dataclass
-class _Candidates:
+class Candidates:
     """Top-k peaks of a batch, before score filtering and NMS."""
 
     boxes: Tensor  # (B, T, 7) float32
@@ -178,7 +178,7 @@ class _Candidates:
     is_peak: Tensor  # (B, T) bool; false where top-k ran out of local maxima
 
 
-def _peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> _Candidates:
+def peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> Candidates:
     """Local maxima of the class heatmaps, the top cfg.pre_nms_top_k over all classes, decoded to boxes."""
     hm = torch.sigmoid(out.heatmap.float())  # (B, K, H, W)
     b, k, h, w = hm.shape
@@ -201,7 +201,7 @@ def _peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> _Candi
     alpha = heat.new_tensor(cfg.iou_rectifier)[labels]  # (B, T)
     iou01 = ((iou + 1.0) * 0.5).clamp(0.0, 1.0)
     scores = heat.pow(1.0 - alpha) * iou01.pow(alpha)  # (B, T)
-    return _Candidates(boxes, scores, labels, heat > 0)
+    return Candidates(boxes, scores, labels, heat > 0)
 
 
 @torch.no_grad()
@@ -213,7 +213,11 @@ def decode(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> list[Detections]
     a_c = cfg.iou_rectifier[c]; drop scores below cfg.score_threshold; class-specific rotated NMS with
     cfg.nms_iou; keep the cfg.post_nms_top_k best. Detections are sorted by descending score.
     """
-    cand = _peak_candidates(out, cfg, bev)
+    return select_detections(peak_candidates(out, cfg, bev), cfg)
+
+
+def select_detections(cand: Candidates, cfg: HeadConfig) -> list[Detections]:
+    """The score threshold and class-specific NMS of `decode`, per batch item, on the candidates' device."""
     result = []
     for i in range(cand.boxes.shape[0]):
         ok = cand.is_peak[i] & (cand.scores[i] >= cfg.score_threshold)  # (T,)

@@ -10,16 +10,18 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
+from model.config import Engine
 from model.detector import PHiM
+from model.graph.engine import GraphStreamingDetector, streaming_detector
 from model.ops.scan import resolve_scan
 from model.sectors import split_turn
-from model.stream import StreamingDetector
 
 
 @dataclass(frozen=True)
 class ModelBench:
     config: str
     device: str
+    engine: str  # model.config.Engine
     scan: str  # the selective-scan implementation that ran (model/ops/scan.py)
     threads: int
     batch: int  # streams per forward
@@ -54,13 +56,21 @@ def _full_turn_peak(model: PHiM, sectors: list[Tensor]) -> float | None:
 
 
 def bench_model(
-    model: PHiM, turn: Tensor, batch: int = 1, turns: int = 10, warmup_turns: int = 2
+    model: PHiM,
+    turn: Tensor,
+    batch: int = 1,
+    turns: int = 10,
+    warmup_turns: int = 2,
+    engine: Engine = Engine.EAGER,
 ) -> ModelBench:
-    """Stream `turn` (N, C) split into sectors, `batch` streams at once; time every step after warm-up."""
-    det = StreamingDetector(model)
+    """Stream `turn` (N, C) split into sectors, `batch` streams at once; time every step after warm-up (a
+    graph engine first learns its capacities from the turn, and compiles during the warm-up)."""
+    det = streaming_detector(model, engine)
     dev = det.device
     cfg = model.cfg
     sectors = [s.to(dev) for s in split_turn(turn, cfg.sectors_per_turn)]
+    if isinstance(det, GraphStreamingDetector):
+        det.calibrate(sectors)
     states = [det.init_state() for _ in range(batch)]
     times: dict[int, list[float]] = {k: [] for k in range(len(sectors))}
     if dev.type == "cuda":
@@ -81,6 +91,7 @@ def bench_model(
     return ModelBench(
         config=cfg.name,
         device=str(dev) if dev.type == "cpu" else torch.cuda.get_device_name(dev),
+        engine=engine.value,
         scan=resolve_scan(cfg.backbone.mamba.scan, dev).value,
         threads=torch.get_num_threads(),
         batch=batch,

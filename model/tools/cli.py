@@ -9,8 +9,15 @@ from typing import TYPE_CHECKING
 
 import click
 
-from model.config import ScanImpl, get_config
-from model.tools.options import checkpoint_option, config_option, device_option, points_option, threads_option
+from model.config import Engine, ScanImpl, get_config
+from model.tools.options import (
+    checkpoint_option,
+    config_option,
+    device_option,
+    engine_option,
+    points_option,
+    threads_option,
+)
 from phim.options import EnumValue, json_option
 
 if TYPE_CHECKING:
@@ -74,6 +81,7 @@ def info(config: str, points: Path | None, as_json: bool) -> None:
 @threads_option
 @checkpoint_option(None)
 @click.option("--scan", type=EnumValue(ScanImpl), help="Selective scan [default: the config's].")
+@engine_option
 @json_option
 def bench_model_cmd(
     config: str,
@@ -84,6 +92,7 @@ def bench_model_cmd(
     threads: int,
     checkpoint: str | None,
     scan: ScanImpl | None,
+    engine: Engine,
     as_json: bool,
 ) -> None:
     """Per-sector latency, sector buffer loaded: one sector at a time of a scan (fresh weights by default)."""
@@ -94,12 +103,12 @@ def bench_model_cmd(
     if scan is not None:
         model.set_scan(scan)
     turn, source = load_turn(points, fallback_kitti=True)
-    result = bench_model(model, turn, batch=batch, turns=turns).to_dict() | {"input": source}
+    result = bench_model(model, turn, batch=batch, turns=turns, engine=engine).to_dict() | {"input": source}
     if as_json:
         click.echo(json.dumps(result))
         return
     click.echo(f"input: {source}")
-    for key in ("config", "device", "scan", "threads", "batch", "points_per_sector", "iterations"):
+    for key in ("config", "device", "engine", "scan", "threads", "batch", "points_per_sector", "iterations"):
         click.echo(f"{key:>24}  {result[key]}")
     click.echo("\n| metric | value |\n|---|---|")
     for key in ("p50_ms", "p90_ms", "mean_ms", "per_sector_p50_ms", "peak_mem_mb", "full_turn_peak_mem_mb"):
@@ -112,9 +121,16 @@ def bench_model_cmd(
 @device_option("cpu")
 @checkpoint_option(None)
 @click.option("--rows", type=click.IntRange(1), default=25, show_default=True, help="Functions to list.")
+@engine_option
 @json_option
 def bench_ops_cmd(
-    config: str, points: Path | None, device: str, checkpoint: str | None, rows: int, as_json: bool
+    config: str,
+    points: Path | None,
+    device: str,
+    checkpoint: str | None,
+    rows: int,
+    engine: Engine,
+    as_json: bool,
 ) -> None:
     """Torch ops and host syncs of one streaming step (kernel launches on a GPU), by model function."""
     from model.tools.op_count import count_ops
@@ -122,15 +138,18 @@ def bench_ops_cmd(
     logging.basicConfig(level=logging.WARNING)
     model = load_model(config, checkpoint, device)
     turn, source = load_turn(points, fallback_kitti=True)
-    report = count_ops(model.eval(), turn)
+    report = count_ops(model.eval(), turn, engine)
     if as_json:
         click.echo(json.dumps(report.to_dict() | {"input": source}))
         return
-    click.echo(f"input: {source}; config {report.config}, device {report.device}, scan {report.scan}")
+    click.echo(
+        f"input: {source}; config {report.config}, engine {report.engine}, device {report.device}, "
+        f"scan {report.scan}"
+    )
     click.echo("\n| where | ops | views | host syncs |\n|---|---|---|---|")
     for r in report.rows[:rows]:
-        click.echo(f"| {r.where} | {r.ops} | {r.views} | {r.syncs} |")
-    click.echo(f"| **all** | **{report.ops}** | {report.views} | **{report.syncs}** |")
+        click.echo(f"| {r.where} | {r.ops} | {r.views} | {r.host_syncs} |")
+    click.echo(f"| **all** | **{report.ops}** | {report.views} | **{report.host_syncs}** |")
     click.echo(f"| all but the selective scan | **{report.ops_outside_scan}** | | |")
     if report.cuda_kernels is not None:
         click.echo(f"| CUDA kernels launched | {report.cuda_kernels} | | |")

@@ -17,7 +17,9 @@ import torch
 from torch import Tensor
 from torch.profiler import ProfilerActivity, profile
 
+from model.config import Engine
 from model.detector import PHiM
+from model.graph.engine import GraphStreamingDetector
 from model.ops.scan import resolve_scan
 from model.sectors import split_turn
 from model.stream import StreamingDetector
@@ -38,17 +40,18 @@ class OpRow:
     where: str  # "model/<file>.py: <function>", or "(outside model/)"
     ops: int  # ops that compute: a kernel launch each (or more) on a GPU
     views: int
-    syncs: int
+    host_syncs: int
 
 
 @dataclass(frozen=True)
 class OpReport:
     config: str
+    engine: str
     device: str
     scan: str
     ops: int
     views: int
-    syncs: int
+    host_syncs: int
     ops_outside_scan: int
     cuda_kernels: int | None  # CUDA only: kernels the step launched
     rows: list[OpRow]  # by ops, descending
@@ -68,9 +71,15 @@ def _where(event: object) -> str:
     return "(outside model/)"
 
 
-def count_ops(model: PHiM, turn: Tensor) -> OpReport:
-    """Stream one turn of `turn` (N, C) to load the buffer, then profile the step of its second sector."""
-    det = StreamingDetector(model)
+def count_ops(model: PHiM, turn: Tensor, engine: Engine = Engine.EAGER) -> OpReport:
+    """Stream one turn of `turn` (N, C) to load the buffer, then profile the step of its second sector.
+
+    Engine.EAGER: the whole `StreamingDetector.step`. A graph engine: its fixed-shape step run op by op, from
+    the inputs on the device to the flat tensor the host copies (the padding and NMS on the host are not
+    counted); a compiled step runs the same ops, fused.
+    """
+    graph = engine is not Engine.EAGER
+    det = GraphStreamingDetector(model) if graph else StreamingDetector(model)
     dev = det.device
     sectors = [s.to(dev) for s in split_turn(turn, model.cfg.sectors_per_turn)]
     state = det.init_state()
@@ -78,19 +87,26 @@ def count_ops(model: PHiM, turn: Tensor) -> OpReport:
     with torch.inference_mode():
         for s in sectors:
             _, (state,) = det.step([s], [state])
+        if isinstance(det, GraphStreamingDetector):
+            inputs, cap = det.inputs([sectors[1]], [state]), det.planner.capacity(*[sectors[1].shape[0]] * 2)
+            step = lambda: det.step_module(*inputs, cap)  # noqa: E731
+        else:
+            step = lambda: det.step([sectors[1]], [state])  # noqa: E731
         with profile(activities=activities, with_stack=True) as prof:
-            det.step([sectors[1]], [state])
+            step()
             if dev.type == "cuda":
                 torch.cuda.synchronize(dev)
     events = prof.events()
     ops, views, syncs = Counter(), Counter(), Counter()
     for e in events:
-        parent = e.cpu_parent
-        if not e.name.startswith("aten::") or (parent is not None and parent.name.startswith("aten::")):
+        if not e.name.startswith("aten::"):
             continue
         where = _where(e)
+        syncs[where] += e.name in SYNC_OPS  # at any depth: an op may wait inside another
+        parent = e.cpu_parent
+        if parent is not None and parent.name.startswith("aten::"):
+            continue
         (views if e.name in VIEW_OPS else ops)[where] += 1
-        syncs[where] += e.name in SYNC_OPS
     rows = sorted(
         (OpRow(w, ops[w], views[w], syncs[w]) for w in ops.keys() | views.keys()),
         key=lambda r: (-r.ops, r.where),
@@ -98,11 +114,12 @@ def count_ops(model: PHiM, turn: Tensor) -> OpReport:
     kernels = sum(1 for e in events if e.device_type == torch.autograd.DeviceType.CUDA)
     return OpReport(
         config=model.cfg.name,
+        engine=engine.value,
         device=str(dev),
         scan=resolve_scan(model.cfg.backbone.mamba.scan, dev).value,
         ops=sum(ops.values()),
         views=sum(views.values()),
-        syncs=sum(syncs.values()),
+        host_syncs=sum(syncs.values()),
         ops_outside_scan=sum(r.ops for r in rows if not r.where.startswith(SCAN_FILES)),
         cuda_kernels=kernels if dev.type == "cuda" else None,
         rows=rows,

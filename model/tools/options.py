@@ -9,7 +9,8 @@ from typing import Any
 
 import click
 
-from model.config import CONFIGS
+from model.config import CONFIGS, Engine
+from phim.options import EnumValue
 
 Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
 
@@ -99,4 +100,15 @@ held_out_seed_option = click.option(
     default=7,
     show_default=True,
     help="Sim stream of the held-out scans (training uses 0).",
+)
+
+
+engine_option: Decorator = click.option(
+    "--engine",
+    envvar="PHIM_ENGINE",
+    type=EnumValue(Engine),
+    default=Engine.EAGER.value,
+    show_default=True,
+    show_envvar=True,
+    help="eager (the reference), fixed (the fixed-shape step, op by op) or graph (it, compiled).",
 )

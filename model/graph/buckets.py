@@ -1,0 +1,63 @@
+"""Shape buckets of the fixed-shape step, chosen on the host before launch.
+
+- Batch: 1, 2, 4, 8, 16 or 32 streams; the padding streams have no points and their outputs are dropped.
+- Rows: a ladder of sizes 2^k and 1.5 * 2^k (a bucket wastes at most a third of its rows). Points per stream
+  come from the sectors; the voxel and coarse-site capacities are predicted from the batch's points with the
+  largest ratio (sites / points) seen so far (`CapacityPlanner`; 1.0 before the first step). The step
+  reports the true counts with its candidates; a step whose sites did not fit is run again with capacities
+  that hold them (never truncated), and the ratios grow to what was seen, so that happens rarely after the
+  first steps (a server's warm-up).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from model.graph.step import Capacity
+
+BATCH_BUCKETS = (1, 2, 4, 8, 16, 32)
+MIN_ROWS = 256
+
+
+def batch_bucket(n: int) -> int:
+    """The smallest batch bucket holding n streams; ValueError above the largest."""
+    for b in BATCH_BUCKETS:
+        if n <= b:
+            return b
+    raise ValueError(f"{n} streams in one step; the graph step takes at most {BATCH_BUCKETS[-1]}")
+
+
+def row_bucket(n: int) -> int:
+    """The smallest ladder size (2^k or 1.5 * 2^k, at least MIN_ROWS) holding n rows."""
+    size = MIN_ROWS
+    while True:
+        if n <= size:
+            return size
+        if n <= size * 3 // 2:
+            return size * 3 // 2
+        size *= 2
+
+
+@dataclass
+class CapacityPlanner:
+    """Predicts a step's capacities from its points; learns the ratios from the counts steps report.
+
+    `ratios`: [voxels, then (a) and (c) sites per strided key] per point of the batch, the largest seen so
+    far; before any step, 1.0 (a voxel holds at least one point, so that fits the voxels).
+    """
+
+    num_keys: int
+    ratios: list[float] = field(default_factory=list)
+
+    def capacity(self, points_per_stream: int, total_points: int) -> Capacity:
+        ratios = self.ratios or [1.0] * (1 + 2 * self.num_keys)
+        rows = [row_bucket(max(1, round(r * total_points))) for r in ratios]
+        coarse = tuple((rows[1 + 2 * i], rows[2 + 2 * i]) for i in range(self.num_keys))
+        return Capacity(points=row_bucket(points_per_stream), voxels=rows[0], coarse=coarse)
+
+    def fits(self, cap: Capacity, counts: list[int], total_points: int) -> bool:
+        """Learn from a step's true site counts (voxels, then (a), (c) per key); False if any overflowed."""
+        caps = [cap.voxels, *(c for pair in cap.coarse for c in pair)]
+        seen = [n / max(1, total_points) for n in counts]
+        self.ratios = [max(a, b) for a, b in zip(self.ratios, seen, strict=True)] if self.ratios else seen
+        return all(n <= c for n, c in zip(counts, caps, strict=True))

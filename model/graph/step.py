@@ -1,0 +1,242 @@
+"""One streaming step of fixed shape: padded sectors of B streams and their states -> top-k candidates, stats
+and new states. Every shape is set by `Capacity` and the batch size; no op waits for the device.
+
+The computation is the eager detector's (`model.stream.StreamingDetector.step`, the reference twin) with
+fixed-capacity sites (`model.graph.sites`): rows [0, n) real, padding after, overflow counted, never hidden:
+
+    voxelize (sort, first-occurrence compaction) -> per PHiM block: local Mamba over frustum segments,
+    decomposed down convs over neighbour tables, global Mamba over one segment per stream continuing its
+    state, up convs -> each stream's new sector gathered into its buffer row -> polar->BEV scatter-mean over
+    the buffered sectors and the new one -> BEV backbone -> head -> top-k candidates.
+
+The host reads one flat tensor (`HostLayout`): the candidates, per stream stats and the site counts. NMS
+runs on the host from the candidates (`model.layers.head.select_detections`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from model.config import PHiMConfig
+from model.detector import PHiM
+from model.geometry.rulebook import Plane
+from model.geometry.sparse_tensor import BATCH, THETA
+from model.geometry.sparse_tensor import R as R_AX
+from model.graph.bev import dense_cell_table, polar_to_bev_fixed
+from model.graph.mamba import mamba_forward
+from model.graph.segments import Segments, frustum_segments, stream_segments
+from model.graph.sites import Sites, scatter_sum
+from model.graph.sparse_conv import conv_fixed, inverse_table, strided_sites, subm_table
+from model.graph.voxelize import voxelize_fixed
+from model.layers.decomposed import DecomposedDown, DecomposedUp
+from model.layers.head import peak_candidates
+from model.layers.mamba import MambaState
+from model.layers.phim_block import PHiMBlock
+
+STATS = ("points_kept", "points_out_of_range", "voxels")  # per stream columns of the host tensor
+
+
+@dataclass(frozen=True)
+class Capacity:
+    """Row capacities of one step (Python ints: a compiled step or CUDA graph is specialised on them)."""
+
+    points: int  # per stream
+    voxels: int  # all streams together
+    coarse: tuple[tuple[int, int], ...]  # per strided (kernel, stride) of `coarse_keys`: sites after (a), (c)
+
+
+def coarse_keys(cfg: PHiMConfig) -> tuple[tuple[int, int], ...]:
+    """The distinct (kernel, stride) pairs of the blocks with stride > 1, in block order."""
+    b = cfg.backbone
+    pairs = [(k, s) for k, s in zip(b.down_kernels, b.down_strides, strict=True) if s > 1]
+    return tuple(dict.fromkeys(pairs))
+
+
+@dataclass(frozen=True)
+class HostLayout:
+    """Where each part lies in the flat float32 tensor the host copies once per step."""
+
+    batch: int
+    top_k: int
+    counts: int  # site counts: voxels, (a) and (c) per coarse key, the largest sector's voxels
+
+    @property
+    def candidate_width(self) -> int:
+        return 10  # box (7), score, label, is_peak
+
+    def split(self, host: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """-> candidates (B, K, 10), stats (B, len(STATS)), site counts (F,) int64."""
+        b, k = self.batch, self.top_k
+        n_cand = b * k * self.candidate_width
+        cand = host[:n_cand].view(b, k, self.candidate_width)
+        stats = host[n_cand : n_cand + b * len(STATS)].view(b, len(STATS))
+        return cand, stats, host[n_cand + b * len(STATS) :].long()
+
+
+@dataclass(frozen=True)
+class _Down:
+    """A (kernel, stride)'s tables, shared by its blocks (they depend on the sites only)."""
+
+    rz: Tensor  # (M1, KK) rows of the block input
+    sub: Tensor  # (M1, KK) rows of the sites after (a)
+    tz: Tensor  # (M2, K * kz) rows of the sites after (a)
+    inv_tz: Tensor  # (M1, K * kz) rows of the coarse sites
+    inv_rz: Tensor  # (V, KK) rows of the sites after (a)
+    coarse: Sites  # (M2,) the global Mamba's tokens
+    counts: Tensor  # (2,) int64: the sites after (a) and after (c) there are (> capacity: overflow)
+    segments: Segments  # one per stream over the coarse sites
+
+
+def _down_tables(sites: Sites, kernel: int, stride: int, kz: int, caps: tuple[int, int] | None) -> _Down:
+    k2, ktz = (kernel, kernel), (kernel, kz)
+    if stride == 1:  # submanifold: the same sites throughout; an inverse table is the mirrored table
+        rz, tz, mid, coarse = (
+            subm_table(sites, k2, Plane.RZ),
+            subm_table(sites, ktz, Plane.THETA_Z),
+            sites,
+            sites,
+        )
+        inv_rz, inv_tz = rz.flip(1), tz.flip(1)
+        sub = rz
+    else:
+        assert caps is not None
+        mid, rz = strided_sites(sites, k2, (stride, stride), Plane.RZ, caps[0])
+        sub = subm_table(mid, k2, Plane.RZ)
+        coarse, tz = strided_sites(mid, ktz, (stride, 1), Plane.THETA_Z, caps[1])
+        inv_tz = inverse_table(mid, coarse, ktz, (stride, 1), Plane.THETA_Z)
+        inv_rz = inverse_table(sites, mid, k2, (stride, stride), Plane.RZ)
+    segs = stream_segments(coarse.coords[:, BATCH], coarse.valid, sites.batch_size)
+    return _Down(rz, sub, tz, inv_tz, inv_rz, coarse, torch.stack([mid.count, coarse.count]), segs)
+
+
+def _conv(conv: nn.Module, x: Tensor, table: Tensor) -> Tensor:
+    """A folded sparse conv (weight (KK, C_in, C_out), bias (C_out,)) + ReLU over a neighbour table."""
+    return torch.relu(conv_fixed(x, table, conv.weight, conv.bias))
+
+
+def _block(block: PHiMBlock, x: Tensor, local: tuple[Segments, Segments], t: _Down, state: MambaState):
+    """x (V, C) at the step's voxel sites -> (V, C), the block's new global-Mamba state (B rows)."""
+    h = block.norm_local(x)
+    fwd, _ = mamba_forward(block.fwd_mamba, h, local[0], None)
+    bwd, _ = mamba_forward(block.bwd_mamba, h.flip(0), local[1], None)
+    v_local = x + fwd + bwd.flip(0)  # (V, C)
+    down: DecomposedDown = block.down
+    h = _conv(down.conv_tz, _conv(down.conv_sub, _conv(down.conv_rz, v_local, t.rz), t.sub), t.tz)  # (M2, C)
+    g, new_state = mamba_forward(block.global_mamba, h, t.segments, state)
+    assert new_state is not None
+    up: DecomposedUp = block.up
+    h = _conv(up.inv_rz, _conv(up.inv_tz, block.norm_global(g), t.inv_tz), t.inv_rz)  # (V, C)
+    return h + v_local, new_state
+
+
+def _check_folded(model: PHiM) -> None:
+    for m in model.backbone.modules():
+        if isinstance(m, DecomposedDown | DecomposedUp) and any(
+            isinstance(bn, nn.BatchNorm1d) for bn in m.children()
+        ):
+            raise ValueError("the graph step runs a folded model: model.fold_bn.fold_batchnorms(model)")
+
+
+class GraphStep(nn.Module):
+    """The fixed-shape step over a folded PHiM (`model.fold_bn.fold_batchnorms`), sharing its weights."""
+
+    cell_table: Tensor
+
+    def __init__(self, model: PHiM, sector_voxels: int):
+        super().__init__()
+        _check_folded(model)
+        self.model = model
+        self.cfg = model.cfg
+        self.sector_voxels = sector_voxels  # S: voxel rows a stream keeps per buffered sector
+        self.keys = coarse_keys(model.cfg)
+        self.register_buffer("cell_table", dense_cell_table(model.to_bev), persistent=False)
+
+    def host_layout(self, batch: int) -> HostLayout:
+        top_k = min(
+            self.cfg.head.pre_nms_top_k, len(self.cfg.head.class_names) * self.cfg.bev.nx * self.cfg.bev.ny
+        )
+        return HostLayout(batch, top_k, 2 + 2 * len(self.keys))
+
+    def forward(
+        self,
+        points: Tensor,  # (B, Np, C) float32
+        counts: Tensor,  # (B,) int64 real rows of each stream's points
+        conv: list[Tensor],  # per block (B, di, d_conv - 1)
+        ssm: list[Tensor],  # per block (B, di, N)
+        buf_feats: Tensor,  # (B, keep, S, C)
+        buf_cols: Tensor,  # (B, keep, S, 2) int64 polar column (r, theta) of each buffered row
+        buf_valid: Tensor,  # (B, keep, S) bool
+        cap: Capacity,
+    ) -> tuple[Tensor, list[Tensor], list[Tensor], Tensor, Tensor, Tensor]:
+        """-> (host (n,) float32 laid out by `host_layout(B)`, new conv, ssm, buffer feats, cols, valid)."""
+        m, cfg = self.model, self.cfg
+        sites, x, kept, out_of_range = voxelize_fixed(m.voxelizer, points, counts, cap.voxels)
+        local = frustum_segments(
+            sites.coords, sites.valid, cfg.grid.theta_bins, cfg.backbone.frustum_theta_bins
+        )
+        tables: dict[tuple[int, int], _Down] = {}
+        counts = [sites.count]
+        for key in dict.fromkeys((b.kernel, b.stride) for b in m.backbone.blocks):
+            caps = cap.coarse[self.keys.index(key)] if key[1] > 1 else None
+            tables[key] = _down_tables(sites, key[0], key[1], cfg.backbone.tz_kernel_z, caps)
+        counts += [n for key in self.keys for n in tables[key].counts.unbind()]
+        new_conv, new_ssm = [], []
+        for block, c, s in zip(m.backbone.blocks, conv, ssm, strict=True):
+            x, st = _block(block, x, local, tables[(block.kernel, block.stride)], MambaState(c, s))
+            new_conv.append(st.conv)
+            new_ssm.append(st.ssm)
+        new_f, new_c, new_v, n_vox = self._sector_rows(sites, x)
+        counts.append(n_vox.max())
+        feats = torch.cat([buf_feats, new_f[:, None]], 1)  # (B, keep + 1, S, C)
+        cols = torch.cat([buf_cols, new_c[:, None]], 1)
+        valid = torch.cat([buf_valid, new_v[:, None]], 1)
+        b = points.shape[0]
+        bev = polar_to_bev_fixed(
+            m.to_bev,
+            self.cell_table,
+            feats.view(b, -1, feats.shape[-1]),
+            cols[..., 0].view(b, -1),
+            cols[..., 1].view(b, -1),
+            valid.view(b, -1),
+        )
+        cand = peak_candidates(m.head(m.bev_backbone(bev)), cfg.head, cfg.bev)
+        packed = torch.cat(
+            [
+                cand.boxes,
+                cand.scores[..., None],
+                cand.labels[..., None].float(),
+                cand.is_peak[..., None].float(),
+            ],
+            -1,
+        )
+        stats = torch.stack([kept, out_of_range, n_vox], 1).float()  # (B, 3)
+        host = torch.cat([packed.reshape(-1), stats.reshape(-1), torch.stack(counts).float()])
+        keep = cfg.buffer_sectors
+        return (
+            host,
+            new_conv,
+            new_ssm,
+            feats[:, feats.shape[1] - keep :],
+            cols[:, cols.shape[1] - keep :],
+            valid[:, valid.shape[1] - keep :],
+        )
+
+    def _sector_rows(self, sites: Sites, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Each stream's rows of the backbone output -> feats (B, S, C), cols (B, S, 2), valid (B, S), and its
+        voxel count (B,) (more than S: the buffer overflows; the host checks)."""
+        b, s = sites.batch_size, self.sector_voxels
+        batch = sites.coords[:, BATCH]  # (V,) padding rows: b
+        n_vox = scatter_sum(
+            torch.zeros(b + 1, dtype=torch.int64, device=x.device), batch, torch.ones_like(batch)
+        )
+        n_vox = n_vox[:b]  # (B,)
+        start = torch.cumsum(n_vox, 0) - n_vox  # (B,) streams' rows are contiguous, in batch order
+        j = torch.arange(s, device=x.device)  # (S,)
+        valid = j[None, :] < n_vox[:, None]  # (B, S)
+        rows = torch.where(valid, start[:, None] + j[None, :], 0).clamp_max(x.shape[0] - 1)  # (B, S)
+        feats = torch.where(valid[..., None], x[rows], 0.0)  # (B, S, C)
+        cols = sites.coords[rows][..., [R_AX, THETA]]  # (B, S, 2)
+        return feats, cols, valid, n_vox

@@ -1,0 +1,128 @@
+"""The fixed-shape step (model/graph) against its reference twin, the eager StreamingDetector: the same
+detections, states and buffers, alone and batched in any order, at any capacity bucket, over three turns."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+from conftest import kitti_scan
+from test_streaming import assert_same_detections, make_model
+
+from model.config import paper
+from model.data.synthetic import synthetic_turn
+from model.detector import PHiM
+from model.graph.buckets import CapacityPlanner, row_bucket
+from model.graph.engine import GraphStreamingDetector, GraphStreamState
+from model.sectors import split_turn
+from model.stream import StreamingDetector, StreamState
+
+
+@pytest.fixture(scope="module")
+def model() -> PHiM:
+    return make_model()
+
+
+def assert_same_state(g: GraphStreamState, e: StreamState) -> None:
+    """The graph state holds the eager one: Mamba states, and each buffered sector's rows in its slot."""
+    for k, m in enumerate(e.mamba):
+        torch.testing.assert_close(g.conv[k], m.conv[0], rtol=1e-4, atol=1e-4, msg=f"block {k} conv")
+        torch.testing.assert_close(g.ssm[k], m.ssm[0], rtol=1e-4, atol=1e-4, msg=f"block {k} ssm")
+    keep = g.valid.shape[0]
+    assert g.sectors_seen == e.sectors_seen
+    for slot, sector in zip(range(keep - len(e.buffer), keep), e.buffer, strict=True):
+        n = sector.num_voxels
+        assert int(g.valid[slot].sum()) == n and bool(g.valid[slot, :n].all())
+        torch.testing.assert_close(g.cols[slot, :n], sector.coords[:, :2], rtol=0, atol=0)
+        torch.testing.assert_close(g.feats[slot, :n], sector.features, rtol=1e-4, atol=1e-4)
+    assert not bool(g.valid[: keep - len(e.buffer)].any())
+
+
+def run_both(graph: GraphStreamingDetector, eager: StreamingDetector, batches: list[list[torch.Tensor]]):
+    """Step both detectors through `batches` (one sector per stream each) and compare every step."""
+    n = len(batches[0])
+    g_states, e_states = [graph.init_state() for _ in range(n)], [eager.init_state() for _ in range(n)]
+    boxes = 0
+    for sectors in batches:
+        g_res, g_states = graph.step(sectors, g_states)
+        e_res, e_states = eager.step(sectors, e_states)
+        for g, e, gs, es in zip(g_res, e_res, g_states, e_states, strict=True):
+            assert_same_detections(g.detections, e.detections)
+            assert (g.context_sectors, g.points_kept, g.points_out_of_range) == (
+                e.context_sectors,
+                e.points_kept,
+                e.points_out_of_range,
+            )
+            assert_same_state(gs, es)
+            boxes += len(g.detections)
+    assert boxes > 0  # the comparison saw boxes
+
+
+@pytest.mark.samples
+def test_equals_eager_over_three_turns(model: PHiM):
+    sectors = split_turn(kitti_scan(0), model.cfg.sectors_per_turn)
+    graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
+    run_both(graph, eager, [[s] for s in sectors * 3])
+
+
+@pytest.mark.samples
+@pytest.mark.parametrize("order", [[0, 1, 2], [2, 0, 1]])
+def test_batched_equals_eager_in_any_order(model: PHiM, order: list[int]):
+    turns = [kitti_scan(0), kitti_scan(1), torch.from_numpy(synthetic_turn(seed=3))]
+    sectors = [split_turn(turns[i], model.cfg.sectors_per_turn) for i in order]
+    graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
+    run_both(graph, eager, [[s[k] for s in sectors] for k in range(model.cfg.sectors_per_turn)])
+
+
+@pytest.mark.samples
+def test_padding_to_a_larger_bucket_changes_nothing(model: PHiM):
+    sectors = split_turn(kitti_scan(0), model.cfg.sectors_per_turn)
+    graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
+    run_both(graph, eager, [[s] for s in sectors])  # learns the ratios
+    tight = graph.planner.capacity(40_000, 40_000)
+    graph.planner.ratios = [r * 2.5 for r in graph.planner.ratios]
+    assert graph.planner.capacity(40_000, 40_000).voxels > tight.voxels
+    run_both(graph, eager, [[s] for s in sectors])
+
+
+def test_sites_that_do_not_fit_run_again_never_truncated(model: PHiM):
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
+    graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
+    graph.planner = CapacityPlanner(graph.planner.num_keys, [0.001] * (1 + 2 * graph.planner.num_keys))
+    run_both(graph, eager, [[s] for s in sectors])
+    assert all(r > 0.01 for r in graph.planner.ratios)  # learned from the counts the steps reported
+
+
+def test_buckets():
+    assert [row_bucket(n) for n in (1, 256, 257, 385, 1000, 1537)] == [256, 256, 384, 512, 1024, 2048]
+
+
+def test_empty_sectors_and_a_stream_without_points(model: PHiM):
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=2)), model.cfg.sectors_per_turn)
+    empty = torch.zeros(0, 4)
+    graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
+    run_both(graph, eager, [[empty, sectors[0]], [sectors[1], empty], [sectors[2], sectors[3]]])
+
+
+def test_paper_config_equals_eager():
+    """The paper config (every block kind: strides 1, 2, 4, kernels 3 and 5) on a thinned synthetic turn."""
+    cfg = paper()
+    cfg = dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, score_threshold=0.3))
+    torch.manual_seed(2)
+    model = PHiM(cfg).eval()
+    with torch.no_grad():
+        model.head.heatmap[-1].weight.mul_(40.0)
+    turn = torch.from_numpy(synthetic_turn(seed=1))[::8]
+    turn = torch.cat([turn, turn.new_zeros(turn.shape[0], 1)], 1)  # elongation column
+    sectors = split_turn(turn, cfg.sectors_per_turn)
+    run_both(GraphStreamingDetector(model), StreamingDetector(model), [[s] for s in sectors[:2]])
+
+
+def test_compiled_step_equals_eager_with_no_graph_break(model: PHiM):
+    """torch.compile(fullgraph=True) of the whole step (padded inputs -> candidates) on the CPU: a graph
+    break raises. Two streams, two sectors each, a thinned turn (the graph's size does not depend on it)."""
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=4))[::4], model.cfg.sectors_per_turn)
+    graph, eager = GraphStreamingDetector(model, compile=True), StreamingDetector(model)
+    graph.calibrate(sectors)
+    run_both(graph, eager, [[sectors[0], sectors[2]], [sectors[1], sectors[3]]])
