@@ -14,25 +14,30 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | 
     echo "CUDA TESTS FAILED (benchmarks follow anyway)"
 phim() { "$py" -m phim "$@"; }
 phim model info --config paper --json >"$out/info_paper.json"
-for run in "paper 1 auto" "paper 8 auto" "paper 1 chunked" "tiny 1 auto" "tiny 8 auto"; do
+for run in "paper 1 eager" "paper 1 graph" "paper 8 eager" "paper 8 graph" "paper 1 fixed" \
+    "tiny 1 eager" "tiny 1 graph" "tiny 8 eager" "tiny 8 graph"; do
     set -- $run
-    phim bench model --config "$1" --batch "$2" --scan "$3" --device cuda --turns 20 --json \
+    phim bench model --config "$1" --batch "$2" --engine "$3" --device cuda --turns 20 --json \
         >"$out/bench_$1_b$2_$3.json"
 done
 for config in paper tiny; do  # ops, CUDA kernels and host syncs of one step, by model function
-    phim bench ops --config "$config" --device cuda --rows 30 >"$out/ops_$config.md"
+    for engine in eager graph; do
+        phim bench ops --config "$config" --engine "$engine" --device cuda --rows 30 >"$out/ops_${config}_$engine.md"
+    done
 done
 echo
-cat "$out/gpu.txt" "$out/ops_paper.md"
+cat "$out/gpu.txt" "$out/ops_paper_eager.md" "$out/ops_paper_graph.md"
 "$py" - "$out" <<'PY'
 import json, pathlib, sys
 out = pathlib.Path(sys.argv[1])
 info = json.loads((out / "info_paper.json").read_text())
 print("paper: params", info["params"], "gflops", info["gflops"])
-print("| config | scan | streams | p50 ms | p90 ms | per-sector p50 ms | peak MB | full-turn peak MB |")
+step_gflops = {"paper": 727.2, "tiny": 1.24}  # one streaming step (docs/benchmarks.md, phim model info)
+print("| config | engine | streams | p50 ms | p90 ms | per-sector p50 ms | TFLOP/s | peak MB |")
 print("|---|---|---|---|---|---|---|---|")
 for f in sorted(out.glob("bench_*.json")):
     r = json.loads(f.read_text())
-    keys = ("config", "scan", "batch", "p50_ms", "p90_ms", "per_sector_p50_ms", "peak_mem_mb", "full_turn_peak_mem_mb")
-    print("| " + " | ".join(str(r[k]) for k in keys) + " |")
+    tflops = step_gflops[r["config"]] * r["batch"] / r["p50_ms"]  # GFLOP per ms = TFLOP/s
+    keys = ("config", "engine", "batch", "p50_ms", "p90_ms", "per_sector_p50_ms")
+    print("| " + " | ".join(str(r[k]) for k in keys) + f" | {tflops:.1f} | {r['peak_mem_mb']} |")
 PY

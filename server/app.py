@@ -36,9 +36,9 @@ from contract import (
     encode_reply,
 )
 from model.checkpoint import load_checkpoint
-from model.config import get_config
+from model.config import Engine, get_config
 from model.device import pick_device
-from model.stream import StreamingDetector
+from model.graph.engine import Detector, streaming_detector
 from server.default_model import init_model, load_default_model
 from server.metrics import Metrics
 from server.settings import Settings
@@ -60,7 +60,7 @@ class Services:
     limits: Limits
 
 
-def build_detector(settings: Settings) -> tuple[StreamingDetector, str]:
+def build_detector(settings: Settings) -> tuple[Detector, str]:
     """The model the settings ask for, on its device -> (detector, where its weights come from)."""
     device = pick_device(settings.device)
     if settings.checkpoint is None:
@@ -71,11 +71,12 @@ def build_detector(settings: Settings) -> tuple[StreamingDetector, str]:
             load_checkpoint(settings.checkpoint, expected, device),
             f"checkpoint {settings.checkpoint}",
         )
-    det = StreamingDetector(model)
+    det = streaming_detector(model, Engine(settings.engine), settings.sector_voxels)
     log.info(
-        "model: config=%s device=%s scan=%s weights=%s",
+        "model: config=%s device=%s engine=%s scan=%s weights=%s",
         det.cfg.name,
         det.device,
+        settings.engine,
         det.cfg.backbone.mamba.scan.value,
         source,
     )
@@ -106,13 +107,13 @@ def start_zenoh(settings: Settings, worker: Worker) -> Closeable:
 
 
 def create_app(
-    settings: Settings, detector: StreamingDetector | None = None, model_source: str = "given detector"
+    settings: Settings, detector: Detector | None = None, model_source: str = "given detector"
 ) -> FastAPI:
     """The app; `detector` (already built) skips loading the model the settings name (tests share one)."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        def load() -> tuple[StreamingDetector, str]:  # runs in the worker's device thread
+        def load() -> tuple[Detector, str]:  # runs in the worker's device thread
             return (detector, model_source) if detector is not None else build_detector(settings)
 
         metrics = Metrics()

@@ -11,10 +11,12 @@ import socket
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from contract import DEFAULT_HTTP_PORT, DEFAULT_ZENOH_ENDPOINT, Limits
+
+MAX_GRAPH_BATCH = 32  # the largest batch bucket of the fixed-shape step (model/graph/buckets.py)
 
 if TYPE_CHECKING:
     from server.worker import WorkerConfig
@@ -46,6 +48,16 @@ class Settings(BaseSettings):
     device: str = Field("auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="auto, cpu, cuda or cuda:N.")
     threads: int = Field(0, ge=0, description="Torch CPU threads (0: torch's default).")
     warmup_sectors: int = Field(5, ge=0, description="Warm-up forwards before the worker is ready.")
+    engine: Literal["eager", "fixed", "graph"] = Field(
+        "eager",
+        description="How a step runs: eager (the reference), fixed (the fixed-shape step) or graph (it, "
+        "compiled with torch.compile; every batch bucket up to max_batch compiles at warm-up).",
+    )
+    sector_voxels: int = Field(
+        8192,
+        ge=256,
+        description="fixed/graph: voxels a stream buffers per sector (a sector with more fails its batch).",
+    )
     # scheduler and stream table
     max_batch: int = Field(8, ge=1, description="Streams per forward.")
     max_wait_ms: float = Field(
@@ -80,6 +92,14 @@ class Settings(BaseSettings):
         description="Logs on stderr: text lines, or JSON lines (time, level, logger, message, exception).",
     )
     access_log: bool = Field(False, description="uvicorn's access log: a line per HTTP request.")
+
+    @model_validator(mode="after")
+    def _batch_fits_the_buckets(self) -> Settings:
+        if self.engine != "eager" and self.max_batch > MAX_GRAPH_BATCH:
+            raise ValueError(
+                f"max_batch {self.max_batch}: the {self.engine} engine runs {MAX_GRAPH_BATCH} at most"
+            )
+        return self
 
     @field_validator("zenoh_listen", "zenoh_connect", mode="before")
     @classmethod

@@ -12,19 +12,26 @@ import torch
 
 from contract import POINT_FIELDS
 from model.data.synthetic import synthetic_turn
+from model.graph.buckets import BATCH_BUCKETS, batch_bucket
+from model.graph.engine import Detector, GraphStreamingDetector
 from model.ops.scan import resolve_scan
 from model.sectors import split_turn
-from model.stream import StreamingDetector
 
 log = logging.getLogger(__name__)
 
 
-def warm_up(det: StreamingDetector, sectors: int) -> float:
+def warm_up(det: Detector, sectors: int, max_batch: int = 1) -> float:
     """Run `sectors` single-stream forwards on a synthetic turn (filling the sector buffer), then one batch
-    of two streams; returns the mean seconds of one forward (0.1 if no forward ran)."""
+    of two streams; returns the mean seconds of one forward (0.1 if no forward ran). A fixed-shape detector
+    first learns its capacities from the turn, and runs a batch of every bucket up to `max_batch` (a
+    compiled one compiles them here, before the worker is ready)."""
     if sectors <= 0:
         return 0.1
     turn = split_turn(torch.from_numpy(synthetic_turn(seed=0)), det.cfg.sectors_per_turn)  # list of (N_k, 4)
+    if isinstance(det, GraphStreamingDetector):
+        det.calibrate(turn)
+        for b in (b for b in BATCH_BUCKETS if b <= batch_bucket(max_batch)):
+            det.step([turn[i % len(turn)] for i in range(b)], [det.init_state() for _ in range(b)])
     state = det.init_state()
     t0 = time.monotonic()
     for i in range(sectors):
@@ -43,7 +50,7 @@ def package_version() -> str:
         return "0+unknown"
 
 
-def model_info(det: StreamingDetector, source: str, worker_id: str) -> dict[str, Any]:
+def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
     cfg = det.cfg
     return {
         "name": "PHiM",
@@ -53,6 +60,12 @@ def model_info(det: StreamingDetector, source: str, worker_id: str) -> dict[str,
         "device": str(det.device),
         "scan": cfg.backbone.mamba.scan.value,  # as configured (auto: the best available)
         "scan_impl": resolve_scan(cfg.backbone.mamba.scan, det.device).value,  # what runs on this device
+        "engine": "eager"
+        if not isinstance(det, GraphStreamingDetector)
+        else "graph"
+        if det.compiled
+        else "fixed",
+        "sector_voxels": det.sector_voxels if isinstance(det, GraphStreamingDetector) else None,
         "classes": list(cfg.head.class_names),
         "sectors_per_turn": cfg.sectors_per_turn,
         "buffer_sectors": cfg.buffer_sectors,

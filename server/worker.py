@@ -23,7 +23,8 @@ import numpy as np
 import torch
 
 from contract import POINT_FIELDS, DetectionsReply, ErrorCode, SectorMessage, ServiceError, Timings
-from model.stream import SectorResult, StreamingDetector
+from model.graph.engine import Detector
+from model.stream import SectorResult
 from server.metrics import OK, Metrics
 from server.streams import Pending, StreamEntry, StreamTable
 from server.warmup import model_info, warm_up
@@ -55,12 +56,12 @@ class Worker:
 
     def __init__(
         self,
-        load: Callable[[], tuple[StreamingDetector, str]],
+        load: Callable[[], tuple[Detector, str]],
         cfg: WorkerConfig = WorkerConfig(),
         metrics: Metrics | None = None,
     ):
         self._load = load
-        self._det: StreamingDetector | None = None
+        self._det: Detector | None = None
         self._source = ""  # where the weights came from (for /v1/model)
         self.cfg = cfg
         self.worker_id = cfg.worker_id
@@ -151,7 +152,7 @@ class Worker:
             return entry.summary(time.monotonic())
 
     @property
-    def det(self) -> StreamingDetector:
+    def det(self) -> Detector:
         """The detector, once the device thread has loaded it (NOT_READY before)."""
         if self._det is None:
             raise ServiceError(ErrorCode.NOT_READY, f"worker {self.worker_id}: {self.status}; no model yet")
@@ -267,7 +268,7 @@ class Worker:
         try:
             self._det, self._source = self._load()
             self.metrics.model_loaded(self.model_info())
-            self._batch_s = warm_up(self._det, self.cfg.warmup_sectors)
+            self._batch_s = warm_up(self._det, self.cfg.warmup_sectors, self.cfg.max_batch)
         except Exception as e:
             log.exception("loading or warming up the model failed; the worker will never be ready")
             with self._cond:

@@ -157,3 +157,19 @@ def test_more_ranks_than_gpus_is_a_clear_error(monkeypatch):
     monkeypatch.setenv("LOCAL_RANK", str(local))
     with pytest.raises(RuntimeError, match=f"LOCAL_RANK {local} but only {local} CUDA device"):
         Dist.from_env("cuda")
+
+
+@pytest.mark.parametrize("compile", [False, True])
+def test_graph_step_on_cuda_equals_eager_on_cuda(models, compile):
+    """The fixed-shape step on the GPU (op by op, and through torch.compile: Triton kernels) equals the eager
+    detector there, over two turns of two streams."""
+    from test_graph_step import run_both
+
+    from model.graph.engine import GraphStreamingDetector
+
+    _, gpu = models
+    turns = [split_turn(kitti_scan(i), gpu.cfg.sectors_per_turn) for i in (0, 1)]
+    graph = GraphStreamingDetector(gpu, compile=compile)
+    graph.calibrate([s.cuda() for s in turns[0]])
+    batches = [[t[k].cuda() for t in turns] for k in range(gpu.cfg.sectors_per_turn)] * 2
+    run_both(graph, StreamingDetector(gpu), batches)

@@ -48,7 +48,7 @@ def run_both(graph: GraphStreamingDetector, eager: StreamingDetector, batches: l
         g_res, g_states = graph.step(sectors, g_states)
         e_res, e_states = eager.step(sectors, e_states)
         for g, e, gs, es in zip(g_res, e_res, g_states, e_states, strict=True):
-            assert_same_detections(g.detections, e.detections)
+            assert_same_detections(g.detections, e.detections.to(torch.device("cpu")))
             assert (g.context_sectors, g.points_kept, g.points_out_of_range) == (
                 e.context_sectors,
                 e.points_kept,

@@ -187,10 +187,11 @@ def from_stream_state(state: StreamState, keep: int, sector_voxels: int, channel
     )
 
 
-def streaming_detector(
-    model: PHiM, engine: Engine, sector_voxels: int = 8192
-) -> StreamingDetector | GraphStreamingDetector:
+def streaming_detector(model: PHiM, engine: Engine, sector_voxels: int = 8192) -> Detector:
     """The detector that runs `model` with `engine`."""
     if engine is Engine.EAGER:
         return StreamingDetector(model)
     return GraphStreamingDetector(model, sector_voxels, compile=engine is Engine.GRAPH)
+
+
+Detector = StreamingDetector | GraphStreamingDetector  # what the server runs
