@@ -6,9 +6,10 @@ import math
 
 import pytest
 import torch
+from test_voxelize import make_voxelizer
 from torch import Tensor
 
-from model.config import PolarGridConfig, VFEConfig, paper, tiny
+from model.config import VFEConfig, paper, tiny
 from model.data.samples import KITTI_000000
 from model.geometry.rulebook import Plane
 from model.geometry.sparse_tensor import SparseTensor, linear_key
@@ -130,18 +131,6 @@ def test_strided_overflow_is_flagged_and_finite() -> None:
 
 
 # ---- voxelizer ---------------------------------------------------------------------------------------------
-
-
-def make_voxelizer(grid: PolarGridConfig, vfe: VFEConfig, out: int) -> PolarVoxelizer:
-    """A voxelizer in eval mode with random, non-trivial BN statistics."""
-    vox = PolarVoxelizer(grid, vfe, out)
-    for layer in vox.layers:
-        bn = layer.norm
-        bn.running_mean.uniform_(-0.5, 0.5)
-        bn.running_var.uniform_(0.5, 2.0)
-        bn.weight.data.uniform_(0.5, 1.5)
-        bn.bias.data.uniform_(-0.2, 0.2)
-    return vox.eval()
 
 
 def pad_points(sectors: list[Tensor], fill: float = math.nan) -> tuple[Tensor, Tensor]:
