@@ -10,7 +10,7 @@ mkdir -p "$out"
 py=${PYTHON:-python3}
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
 "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" | tee -a "$out/gpu.txt"
-"$py" -m pytest -q -W error -p no:cacheprovider tests/test_cuda.py 2>&1 | tee "$out/test_cuda.log" ||
+"$py" -m pytest -q -p no:cacheprovider tests/test_cuda.py 2>&1 | tee "$out/test_cuda.log" ||
     echo "CUDA TESTS FAILED (benchmarks follow anyway)"
 phim() { "$py" -m phim "$@"; }
 phim model info --config paper --json >"$out/info_paper.json"

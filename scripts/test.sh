@@ -8,4 +8,4 @@ VENV=${PHIM_VENV:-.venv}
 
 "$VENV/bin/ruff" check .
 "$VENV/bin/ruff" format --check .
-exec "$VENV/bin/python" -m pytest -W error -q "$@"
+exec "$VENV/bin/python" -m pytest -q "$@"  # warnings are errors: pyproject.toml, filterwarnings
