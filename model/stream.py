@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from model.config import Engine
 from model.detector import PHiM, SectorFeatures
 from model.fold_bn import fold_batchnorms
 from model.geometry.boxes import Detections
@@ -49,6 +50,7 @@ class StreamingDetector:
         the conv before it (`model.fold_bn`: the same outputs up to float rounding, a little faster)."""
         self.model = fold_batchnorms(model) if fold_bn else model.eval()
         self.cfg = model.cfg
+        self.engine = Engine.EAGER
         log.info(
             "streaming detector: config=%s device=%s scan=%s batchnorms folded=%s",
             self.cfg.name,

@@ -52,7 +52,8 @@ class GraphStreamingDetector:
         self.cfg = model.cfg
         self.step_module = GraphStep(self.model, sector_voxels)
         self.planner = CapacityPlanner(len(self.step_module.keys))
-        self.compiled = compile
+        self.engine = Engine.GRAPH if compile else Engine.FIXED
+        self._blank: GraphStreamState | None = None  # a fresh state: pads a batch to its bucket
         if compile:
             cfg = torch._dynamo.config
             cfg.recompile_limit = max(cfg.recompile_limit, 64)  # one graph per bucket
@@ -100,7 +101,9 @@ class GraphStreamingDetector:
         for p in points:
             self.validate(p)
         n, b = len(points), batch_bucket(len(points))
-        inputs = self.inputs(points, [*states, *[self.init_state()] * (b - n)])
+        if self._blank is None:
+            self._blank = self.init_state()
+        inputs = self.inputs(points, [*states, *[self._blank] * (b - n)])
         total = sum(int(p.shape[0]) for p in points)
         layout = self.step_module.host_layout(b)
         while True:

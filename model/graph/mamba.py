@@ -25,10 +25,7 @@ from torch import Tensor
 
 from model.graph.segments import Segments
 from model.layers.mamba import Mamba, MambaState
-
-
-def _compute_dtype(*tensors: Tensor) -> torch.dtype:
-    return torch.float64 if any(t.dtype == torch.float64 for t in tensors) else torch.float32
+from model.ops.scan_torch import compute_dtype
 
 
 def _chunk_states(E: Tensor, dBu: Tensor, inplace: bool) -> tuple[Tensor, Tensor]:
@@ -85,7 +82,7 @@ def segmented_scan(
     """
     T, D = u.shape
     N = B.shape[1]
-    cd = _compute_dtype(u, delta, A, B, C)
+    cd = compute_dtype(u, delta, A, B, C)
     nc = max(-(-T // chunk_size), 1)  # chunks; the tail of the last one is padding
     inplace = not (torch.is_grad_enabled() and any(t.requires_grad for t in (u, delta, A, B, C)))
     valid = segs.valid[:, None]  # (T, 1)
@@ -139,7 +136,7 @@ def segmented_scan_op(
 @segmented_scan_op.register_fake
 def _(u, delta, A, B, C, start, valid, seg, last, h0, chunk_size):
     T, D = u.shape
-    final = u.new_empty(0) if h0 is None else h0.new_empty(h0.shape, dtype=_compute_dtype(u, delta, A, B, C))
+    final = u.new_empty(0) if h0 is None else h0.new_empty(h0.shape, dtype=compute_dtype(u, delta, A, B, C))
     return u.new_empty(T, D), final
 
 

@@ -93,14 +93,10 @@ class _Down:
 def _down_tables(sites: Sites, kernel: int, stride: int, kz: int, caps: tuple[int, int] | None) -> _Down:
     k2, ktz = (kernel, kernel), (kernel, kz)
     if stride == 1:  # submanifold: the same sites throughout; an inverse table is the mirrored table
-        rz, tz, mid, coarse = (
-            subm_table(sites, k2, Plane.RZ),
-            subm_table(sites, ktz, Plane.THETA_Z),
-            sites,
-            sites,
-        )
+        mid = coarse = sites
+        rz = sub = subm_table(sites, k2, Plane.RZ)
+        tz = subm_table(sites, ktz, Plane.THETA_Z)
         inv_rz, inv_tz = rz.flip(1), tz.flip(1)
-        sub = rz
     else:
         assert caps is not None
         mid, rz = strided_sites(sites, k2, (stride, stride), Plane.RZ, caps[0])
@@ -178,18 +174,18 @@ class GraphStep(nn.Module):
             sites.coords, sites.valid, cfg.grid.theta_bins, cfg.backbone.frustum_theta_bins
         )
         tables: dict[tuple[int, int], _Down] = {}
-        counts = [sites.count]
+        site_counts = [sites.count]
         for key in dict.fromkeys((b.kernel, b.stride) for b in m.backbone.blocks):
             caps = cap.coarse[self.keys.index(key)] if key[1] > 1 else None
             tables[key] = _down_tables(sites, key[0], key[1], cfg.backbone.tz_kernel_z, caps)
-        counts += [n for key in self.keys for n in tables[key].counts.unbind()]
+        site_counts += [n for key in self.keys for n in tables[key].counts.unbind()]
         new_conv, new_ssm = [], []
         for block, c, s in zip(m.backbone.blocks, conv, ssm, strict=True):
             x, st = _block(block, x, local, tables[(block.kernel, block.stride)], MambaState(c, s))
             new_conv.append(st.conv)
             new_ssm.append(st.ssm)
         new_f, new_c, new_v, n_vox = self._sector_rows(sites, x)
-        counts.append(n_vox.max())
+        site_counts.append(n_vox.max())
         feats = torch.cat([buf_feats, new_f[:, None]], 1)  # (B, keep + 1, S, C)
         cols = torch.cat([buf_cols, new_c[:, None]], 1)
         valid = torch.cat([buf_valid, new_v[:, None]], 1)
@@ -213,7 +209,7 @@ class GraphStep(nn.Module):
             -1,
         )
         stats = torch.stack([kept, out_of_range, n_vox], 1).float()  # (B, 3)
-        host = torch.cat([packed.reshape(-1), stats.reshape(-1), torch.stack(counts).float()])
+        host = torch.cat([packed.reshape(-1), stats.reshape(-1), torch.stack(site_counts).float()])
         keep = cfg.buffer_sectors
         return (
             host,

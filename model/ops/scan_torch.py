@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 
-def _compute_dtype(*tensors: Tensor) -> torch.dtype:
+def compute_dtype(*tensors: Tensor) -> torch.dtype:
     """float64 if any input is float64, else float32 (half inputs are computed in float32)."""
     return torch.float64 if any(t.dtype == torch.float64 for t in tensors) else torch.float32
 
@@ -66,7 +66,7 @@ def selective_scan_ref(
     Returns y (T, D) in u's dtype and the final states (S, D, N) (float32, float64 for float64 inputs).
     """
     check_inputs(u, delta, A, B, C, cu_seqlens, h0)
-    cd = _compute_dtype(u, delta, A, B, C)
+    cd = compute_dtype(u, delta, A, B, C)
     bounds = cu_seqlens.tolist()
     _check_cu(np.asarray(bounds), u.shape[0])
     u_, delta_, A_, B_, C_ = (t.to(cd) for t in (u, delta, A, B, C))
@@ -231,7 +231,7 @@ def selective_scan_chunked(
     T, D = u.shape
     N = B.shape[1]
     S = cu_seqlens.numel() - 1
-    cd = _compute_dtype(u, delta, A, B, C)
+    cd = compute_dtype(u, delta, A, B, C)
     h_init = u.new_zeros((S, D, N), dtype=cd) if h0 is None else h0.to(cd)  # (S, D, N)
     lay = _build_layout(cu_seqlens, chunk_size, T)
     if T == 0:
