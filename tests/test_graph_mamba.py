@@ -11,7 +11,7 @@ from torch import Tensor
 
 from model.config import BackboneConfig, MambaConfig, ScanImpl
 from model.geometry.sparse_tensor import SparseTensor, linear_key
-from model.graph.mamba import mamba_forward, segmented_scan
+from model.graph.mamba import mamba_forward, segmented_scan, segmented_scan_op
 from model.graph.segments import Segments, frustum_segments, stream_segments
 from model.layers.mamba import Mamba, MambaState
 from model.layers.phim_block import PHiMBlock, frustum_cu_seqlens, reversed_cu_seqlens
@@ -81,6 +81,33 @@ def test_segmented_scan_matches_reference(shared_decay: bool, with_h0: bool, chu
         torch.testing.assert_close(final, final_ref, rtol=1e-12, atol=1e-12)
     else:
         assert final is None
+
+
+@pytest.mark.parametrize("shared_decay", [False, True])
+@pytest.mark.parametrize("with_h0", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cpu_kernel_matches_torch_twin(shared_decay: bool, with_h0: bool, dtype: torch.dtype):
+    """The op's CPU kernel (numba, `model.graph.scan_cpu`) against the torch twin, streams and padding."""
+    S, D, N = len(LENGTHS), 5, 4
+    batch, valid = _stream_pack(LENGTHS, PAD)
+    T = batch.numel()
+    segs = stream_segments(batch, valid, S)
+    u, B, C = torch.randn(T, D, dtype=dtype), torch.randn(T, N, dtype=dtype), torch.randn(T, N, dtype=dtype)
+    delta = torch.rand(T, D, dtype=dtype)
+    delta[~valid] = -50.0
+    A = -torch.rand(D, 1 if shared_decay else N, dtype=dtype) * 4
+    h0 = torch.randn(S, D, N, dtype=dtype) if with_h0 else None
+    y_ref, final_ref = segmented_scan(u, delta, A, B, C, segs, h0, 4)
+    y, final = segmented_scan_op(u, delta, A, B, C, segs.start, segs.valid, segs.seg, segs.last, h0, 4)
+    tol = {"rtol": 1e-12, "atol": 1e-12} if dtype == torch.float64 else {"rtol": 1e-5, "atol": 1e-5}
+    assert y.dtype == dtype
+    torch.testing.assert_close(y, y_ref, **tol)
+    assert torch.equal(y[~valid], torch.zeros_like(y[~valid]))
+    if with_h0:
+        assert final_ref is not None
+        torch.testing.assert_close(final, final_ref, **tol)
+    else:
+        assert final.numel() == 0
 
 
 def test_segmented_scan_gradients_match_reference():

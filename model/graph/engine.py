@@ -51,7 +51,7 @@ class GraphStreamingDetector:
         self.model = self.reference.model
         self.cfg = model.cfg
         self.step_module = GraphStep(self.model, sector_voxels)
-        self.planner = CapacityPlanner(len(self.step_module.keys))
+        self.planner = CapacityPlanner(len(self.step_module.keys), len(self.step_module.tables))
         self.engine = Engine.GRAPH if compile else Engine.FIXED
         self._blank: GraphStreamState | None = None  # a fresh state: pads a batch to its bucket
         if compile:

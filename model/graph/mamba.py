@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from model.graph.scan_cpu import segmented_scan_cpu
 from model.graph.segments import Segments
 from model.layers.mamba import Mamba, MambaState
 from model.ops.scan_torch import compute_dtype
@@ -126,11 +127,18 @@ def segmented_scan_op(
     chunk_size: int,
 ) -> tuple[Tensor, Tensor]:
     """`segmented_scan` as a torch custom op: torch.compile calls it as one opaque op (inductor's CPU code
-    for the unrolled chunk loop recomputes the chain and runs 3-4x slower than these aten ops), and a
-    device kernel can register under the same name. Returns (y (T, D), final states (S, D, N), or (0,)
-    without h0)."""
+    for the unrolled chunk loop recomputes the chain and runs 3-4x slower than these aten ops). On CPU it
+    runs the numba kernel (`model.graph.scan_cpu`), elsewhere `segmented_scan`, its reference twin.
+    Returns (y (T, D), final states (S, D, N), or (0,) without h0)."""
     y, final = segmented_scan(u, delta, A, B, C, Segments(start, valid, seg, last), h0, chunk_size)
     return y.contiguous(), final.contiguous() if final is not None else u.new_zeros(0)
+
+
+@segmented_scan_op.register_kernel("cpu")
+def _(u, delta, A, B, C, start, valid, seg, last, h0, chunk_size):
+    cd = compute_dtype(u, delta, A, B, C)
+    y, final = segmented_scan_cpu(u, delta, A, B, C, start, valid, seg, last, h0, cd)
+    return y.to(u.dtype), final if final is not None else u.new_zeros(0)
 
 
 @segmented_scan_op.register_fake
