@@ -22,8 +22,8 @@ log = logging.getLogger(__name__)
 
 def warm_up(det: Detector, sectors: int, max_batch: int = 1) -> float:
     """Run `sectors` single-stream forwards on a synthetic turn (filling the sector buffer), then (eager)
-    one batch of two streams; returns the mean seconds of one forward (0.1 if no forward ran). A fixed-shape detector
-    first learns its capacities from the turn, runs a batch of fresh streams for every bucket up to
+    one batch of two streams; returns the mean seconds of one forward (0.1 if no forward ran). A fixed-shape
+    detector first learns its capacities from the turn, runs a batch of fresh streams for every bucket up to
     `max_batch` (a compiled one compiles them here, before the worker is ready), and gives back the one
     stream-state slot it used."""
     if sectors <= 0:
