@@ -129,8 +129,15 @@ class StreamTable:
             raise self._full(stream_id)
         try:
             state = self.new_state()
-        except SlotsExhausted:  # the state slots are sized by max_streams: the same limit
-            raise self._full(stream_id) from None
+        except SlotsExhausted:  # sized by max_streams; a stream ended mid-step gives its slot back after it
+            raise ServiceError(
+                ErrorCode.OVERLOADED,
+                f"stream_id: cannot start stream {stream_id!r}: all stream-state slots (max_streams="
+                f"{self.max_streams}) are in use; an ended stream's slot comes back once its running sector "
+                "has finished: retry shortly",
+                "stream_id",
+                retry_after_s=0.1,
+            ) from None
         entry = StreamEntry(stream_id=stream_id, created_unix=time.time(), last_seen=now, state=state)
         self.entries[stream_id] = entry
         return entry
