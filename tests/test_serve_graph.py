@@ -37,6 +37,7 @@ from model.data.synthetic import synthetic_turn
 from model.graph.engine import GraphStreamingDetector
 from model.sectors import split_turn
 from server.settings import Settings
+from server.worker import Worker, WorkerConfig
 
 
 def post(url: str, stream: str, seq: int, points) -> DetectionsReply:
@@ -68,8 +69,11 @@ def test_concurrent_streams_on_the_fixed_step_equal_the_eager_model():
 
 
 def test_a_graph_engine_batches_at_most_the_largest_bucket():
-    with pytest.raises(ValidationError, match="max_batch 64"):
+    with pytest.raises(ValidationError, match="max_batch 64: the graph engine runs 32 at most"):
         Settings(engine="graph", max_batch=64)
+    with pytest.raises(ValidationError, match="max_batch 33: the fixed engine runs 32 at most"):
+        Settings(engine="fixed", max_batch=33)
+    assert Settings(engine="fixed", max_batch=32).max_batch == 32
     assert Settings(engine="eager", max_batch=64).max_batch == 64
 
 
@@ -187,3 +191,17 @@ def test_phim_serve_sizes_the_slots_by_max_streams():
         info = httpx.get(f"{s.url}/v1/model", timeout=10).json()
         assert (info["engine"], info["state_slots"], info["sector_voxels"]) == ("fixed", 3, 512)
         assert info["slot_bytes"] > 0
+
+
+def test_a_detector_with_fewer_slots_than_max_streams_fails_the_start_up():
+    det = GraphStreamingDetector(comparable_detector().model, sector_voxels=512, slots=2)
+    worker = Worker(lambda: (det, "test detector"), WorkerConfig(max_streams=3, warmup_sectors=0))
+    worker.start()
+    try:
+        assert not worker.wait_ready(30)
+        assert worker.status == (
+            "start-up failed: ValueError: max_streams: 3, but the detector has 2 stream-state slots; "
+            "expected at least max_streams (build it with slots=max_streams)"
+        )
+    finally:
+        worker.close(1)

@@ -143,9 +143,10 @@ class GraphStreamingDetector:
         ok = [i for i, v in enumerate(voxels) if v <= self.sector_voxels]
         results = self._results(cand[:n], stats[:n], states)
         self._write_back(new, [states[i].slot for i in ok], ok)  # last: a failure before it changes nothing
-        outcomes = [r if i in ok else self._rejected(voxels[i]) for i, r in enumerate(results)]
+        ran = set(ok)
+        outcomes = [r if i in ran else self._rejected(voxels[i]) for i, r in enumerate(results)]
         new_states = [
-            SlotState(s.slot, s.sectors_seen + 1, s.keep, s.generation) if i in ok else s
+            SlotState(s.slot, s.sectors_seen + 1, s.keep, s.generation) if i in ran else s
             for i, s in enumerate(states)
         ]
         return outcomes, new_states
