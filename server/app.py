@@ -71,7 +71,7 @@ def build_detector(settings: Settings) -> tuple[Detector, str]:
             load_checkpoint(settings.checkpoint, expected, device),
             f"checkpoint {settings.checkpoint}",
         )
-    det = streaming_detector(model, Engine(settings.engine), settings.sector_voxels)
+    det = streaming_detector(model, Engine(settings.engine), settings.sector_voxels, settings.max_streams)
     log.info(
         "model: config=%s device=%s engine=%s scan=%s weights=%s",
         det.cfg.name,

@@ -39,6 +39,7 @@ LATENCY_BUCKETS_S = (
     *(0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 0.75, 1.0, 2.5, 5.0, 10.0),
 )
 BATCH_BUCKETS = (1, 2, 3, 4, 6, 8, 12, 16, 32, 64, 128)  # sectors per forward
+FILL_BUCKETS = (0.5, 0.6, 0.7, 0.8, 0.9, 1.0)  # sectors / batch bucket (always > 0.5: buckets double)
 BUILD_LABELS = ("version", "config", "device", "scan_impl", "weights")  # keys of the worker's model info
 OK = "ok"  # the outcome label of an answered sector; errors use their ErrorCode value
 
@@ -69,6 +70,12 @@ class Metrics:
         )
         self.batch_sectors = Histogram(
             "phim_batch_sectors", "Sectors per model forward", buckets=BATCH_BUCKETS, registry=r
+        )
+        self.batch_fill = Histogram(
+            "phim_batch_fill_ratio",
+            "Sectors per forward / the batch size it runs at (fixed-shape engines pad to a bucket; eager: 1)",
+            buckets=FILL_BUCKETS,
+            registry=r,
         )
         self.batch_failures = Counter("phim_batch_failures", "Model forwards that raised", registry=r)
         self.queue_latency = self._latency(

@@ -56,7 +56,7 @@ class Settings(BaseSettings):
     sector_voxels: int = Field(
         8192,
         ge=256,
-        description="fixed/graph: voxels a stream buffers per sector (a sector with more fails its batch).",
+        description="fixed/graph: voxels a stream buffers per sector (a sector with more fails alone: 422).",
     )
     # scheduler and stream table
     max_batch: int = Field(8, ge=1, description="Streams per forward.")
@@ -66,7 +66,9 @@ class Settings(BaseSettings):
     queue_size: int = Field(64, ge=1, description="Queued sectors (all streams) before 503 overloaded.")
     deadline_ms: float = Field(2000.0, gt=0, description="A sector not started by then gets 504.")
     idle_timeout_s: float = Field(10.0, gt=0, description="Streams idle this long are evicted.")
-    max_streams: int = Field(256, ge=1, description="Live streams at most.")
+    max_streams: int = Field(
+        256, ge=1, description="Live streams at most (fixed/graph: the device state slots it allocates)."
+    )
     drain_timeout_s: float = Field(
         10.0, ge=0, description="On shutdown, keep answering queued sectors this long."
     )

@@ -4,6 +4,11 @@ Not thread-safe by itself: the Worker holds its lock around every call. A stream
 (or on a sector with the reset flag), ends on request, and is evicted after `idle_timeout_s` without sectors.
 Sequence numbers: a sector must come after every sector of its stream already admitted (queued or done),
 unless it carries the reset flag; a gap (seq > last + 1) is accepted and reported when the sector runs.
+
+States: `new_state` gives a new stream its state (a fixed-shape engine's device slot; None: the device loop
+makes it) and `drop_state` gives it back when the stream leaves the table (ended or evicted). A stream ended
+while its sector runs gives its state back when that sector has finished (`finished`), so the step in
+progress never reads a slot another stream has taken meanwhile.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from typing import Any
 import torch
 
 from contract import DetectionsReply, ErrorCode, SectorMessage, ServiceError
+from model.graph.slots import SlotsExhausted, SlotState
 from model.stream import StreamState
 
 
@@ -39,7 +45,7 @@ class StreamEntry:
     stream_id: str
     created_unix: float
     last_seen: float  # time.monotonic() of the last sector admitted or answered
-    state: StreamState | None = None  # None: fresh (the device loop builds the initial state)
+    state: StreamState | SlotState | None = None  # None: fresh (the device loop builds the initial state)
     last_seq: int | None = None  # seq of the last sector that ran
     last_timestamp_ns: int | None = None  # its sensor time
     last_admitted: int | None = None  # seq of the newest sector queued or run (stale checks)
@@ -70,13 +76,28 @@ class StreamEntry:
         }
 
 
+def _no_state() -> None:
+    return None
+
+
+def _nothing_to_drop(state: StreamState | SlotState | None) -> None:
+    return None
+
+
 class StreamTable:
     def __init__(
-        self, max_streams: int, idle_timeout_s: float, on_evict: Callable[[str], None] | None = None
+        self,
+        max_streams: int,
+        idle_timeout_s: float,
+        on_evict: Callable[[str], None] | None = None,
+        new_state: Callable[[], SlotState | None] = _no_state,
+        drop_state: Callable[[StreamState | SlotState | None], None] = _nothing_to_drop,
     ):
         self.max_streams = max_streams
         self.on_evict = on_evict
         self.idle_timeout_s = idle_timeout_s
+        self.new_state = new_state
+        self.drop_state = drop_state
         self.entries: dict[str, StreamEntry] = {}
 
     def __len__(self) -> int:
@@ -105,23 +126,47 @@ class StreamTable:
         if len(self.entries) >= self.max_streams:
             self.evict_idle(now)
         if len(self.entries) >= self.max_streams:
+            raise self._full(stream_id)
+        try:
+            state = self.new_state()
+        except SlotsExhausted:  # sized by max_streams; a stream ended mid-step gives its slot back after it
             raise ServiceError(
                 ErrorCode.OVERLOADED,
-                f"stream_id: cannot start stream {stream_id!r}: {len(self.entries)} live streams, the limit "
-                f"(max_streams={self.max_streams}); end a stream or retry once idle streams are evicted "
-                f"(after {self.idle_timeout_s:g} s without sectors)",
+                f"stream_id: cannot start stream {stream_id!r}: all stream-state slots (max_streams="
+                f"{self.max_streams}) are in use; an ended stream's slot comes back once its running sector "
+                "has finished: retry shortly",
                 "stream_id",
-                retry_after_s=self.idle_timeout_s,
-            )
-        entry = StreamEntry(stream_id=stream_id, created_unix=time.time(), last_seen=now)
+                retry_after_s=0.1,
+            ) from None
+        entry = StreamEntry(stream_id=stream_id, created_unix=time.time(), last_seen=now, state=state)
         self.entries[stream_id] = entry
         return entry
+
+    def _full(self, stream_id: str) -> ServiceError:
+        return ServiceError(
+            ErrorCode.OVERLOADED,
+            f"stream_id: cannot start stream {stream_id!r}: {len(self.entries)} live streams, the limit "
+            f"(max_streams={self.max_streams}); end a stream or retry once idle streams are evicted "
+            f"(after {self.idle_timeout_s:g} s without sectors)",
+            "stream_id",
+            retry_after_s=self.idle_timeout_s,
+        )
 
     def end(self, stream_id: str) -> StreamEntry:
         entry = self.entries.pop(stream_id, None)
         if entry is None:
             raise self.unknown(stream_id)
+        if not entry.running:  # else `finished` gives its state back
+            self.drop_state(entry.state)
         return entry
+
+    def finished(self, entry: StreamEntry) -> bool:
+        """After the entry's sector ran (or failed): True if the stream is still live; if it was ended
+        meanwhile, its state goes back now."""
+        if self.entries.get(entry.stream_id) is entry:
+            return True
+        self.drop_state(entry.state)
+        return False
 
     def unknown(self, stream_id: str) -> ServiceError:
         return ServiceError(
@@ -135,7 +180,7 @@ class StreamTable:
         """Drop streams without queued or running sectors that were idle longer than the timeout."""
         old = [sid for sid, e in self.entries.items() if e.idle and now - e.last_seen > self.idle_timeout_s]
         for sid in old:
-            del self.entries[sid]
+            self.drop_state(self.entries.pop(sid).state)
             if self.on_evict is not None:
                 self.on_evict(sid)
         return old

@@ -21,25 +21,33 @@ log = logging.getLogger(__name__)
 
 
 def warm_up(det: Detector, sectors: int, max_batch: int = 1) -> float:
-    """Run `sectors` single-stream forwards on a synthetic turn (filling the sector buffer), then one batch
-    of two streams; returns the mean seconds of one forward (0.1 if no forward ran). A fixed-shape detector
-    first learns its capacities from the turn, and runs a batch of every bucket up to `max_batch` (a
-    compiled one compiles them here, before the worker is ready)."""
+    """Run `sectors` single-stream forwards on a synthetic turn (filling the sector buffer), then (eager)
+    one batch of two streams; returns the mean seconds of one forward (0.1 if no forward ran). A fixed-shape
+    detector first learns its capacities from the turn, runs a batch of fresh streams for every bucket up to
+    `max_batch` (a compiled one compiles them here, before the worker is ready), and gives back the one
+    stream-state slot it used."""
     if sectors <= 0:
         return 0.1
     turn = split_turn(torch.from_numpy(synthetic_turn(seed=0)), det.cfg.sectors_per_turn)  # list of (N_k, 4)
-    if isinstance(det, GraphStreamingDetector):
+    graph = isinstance(det, GraphStreamingDetector)
+    if graph:
         det.calibrate(turn)
         for b in (b for b in BATCH_BUCKETS if b <= batch_bucket(max_batch)):
-            det.step([turn[i % len(turn)] for i in range(b)], [det.init_state() for _ in range(b)])
-    state = det.init_state()
+            det.run_fresh([turn[i % len(turn)] for i in range(b)])
+    pair = sectors >= 2 and not graph  # a fixed-shape detector ran its batch buckets above
+    state = taken = det.init_state()
     t0 = time.monotonic()
-    for i in range(sectors):
-        _, (state,) = det.step([turn[i % len(turn)]], [state])
-    if sectors >= 2:
-        det.step(turn[:2], [det.init_state(), state])
-    mean_s = (time.monotonic() - t0) / (sectors + (sectors >= 2))
-    log.info("warm-up: %d forwards, %.1f ms each on average", sectors + (sectors >= 2), mean_s * 1e3)
+    try:
+        for i in range(sectors):
+            _, (state,) = det.step([turn[i % len(turn)]], [state])
+        if pair:
+            det.step(turn[:2], [det.init_state(), state])
+    finally:
+        if isinstance(det, GraphStreamingDetector):
+            det.release(taken)
+    forwards = sectors + int(pair)
+    mean_s = (time.monotonic() - t0) / forwards
+    log.info("warm-up: %d forwards, %.1f ms each on average", forwards, mean_s * 1e3)
     return mean_s
 
 
@@ -48,6 +56,18 @@ def package_version() -> str:
         return version("phim")
     except PackageNotFoundError:
         return "0+unknown"
+
+
+def slot_info(det: Detector) -> dict[str, Any]:
+    """The fixed-shape engines' device-resident stream-state slots (None for eager: per-stream states)."""
+    if not isinstance(det, GraphStreamingDetector):
+        return {"state_slots": None, "slot_bytes": None, "slot_memory_mb": None}
+    slots = det.slots
+    return {
+        "state_slots": slots.count,
+        "slot_bytes": slots.slot_bytes,
+        "slot_memory_mb": round(slots.total_bytes / 2**20, 1),
+    }
 
 
 def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
@@ -62,6 +82,7 @@ def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
         "scan_impl": resolve_scan(cfg.backbone.mamba.scan, det.device).value,  # what runs on this device
         "engine": det.engine.value,
         "sector_voxels": det.sector_voxels if isinstance(det, GraphStreamingDetector) else None,
+        **slot_info(det),
         "classes": list(cfg.head.class_names),
         "sectors_per_turn": cfg.sectors_per_turn,
         "buffer_sectors": cfg.buffer_sectors,

@@ -2,10 +2,11 @@
 
 One device-loop thread owns the model. Transports call `submit` from any thread; it validates the sector,
 admits it to its stream's queue (or fails the returned future at once) and never blocks. The loop forms a
-batch of at most one sector per stream (the oldest waiting first), bounded by `max_batch` and `max_wait_ms`,
-runs `StreamingDetector.step` once, writes the new states back and answers every sector with its own reply
-or its own error. A stream's next sector waits until its previous one has run, so each stream stays in order.
-numpy <-> torch conversion happens here: transports never see a tensor.
+batch of at most one sector per stream (the oldest waiting first), bounded by `max_batch` and `max_wait_ms`
+(and, for a fixed-shape engine, preferring full batch buckets: `server.scheduler`), runs the detector's
+`step` once, writes the new states back and answers every sector with its own reply or its own error. A
+stream's next sector waits until its previous one has run, so each stream stays in order. numpy <-> torch
+conversion happens here (`server.admission`): transports never see a tensor.
 """
 
 from __future__ import annotations
@@ -19,13 +20,15 @@ from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import torch
 
-from contract import POINT_FIELDS, DetectionsReply, ErrorCode, SectorMessage, ServiceError, Timings
-from model.graph.engine import Detector
-from model.stream import SectorResult
+from contract import DetectionsReply, ErrorCode, SectorMessage, ServiceError
+from model.graph.engine import Detector, SectorRejected
+from server.admission import sector_points
+from server.device_states import DetectorStates
 from server.metrics import OK, Metrics
+from server.outcomes import sector_answer
+from server.scheduler import Wait, batch_fill, decide
 from server.streams import Pending, StreamEntry, StreamTable
 from server.warmup import model_info, warm_up
 
@@ -66,7 +69,11 @@ class Worker:
         self.cfg = cfg
         self.worker_id = cfg.worker_id
         self.metrics = metrics or Metrics()
-        self.table = StreamTable(cfg.max_streams, cfg.idle_timeout_s, on_evict=self._evicted)
+        self._states = DetectorStates(cfg.max_streams)
+        st = self._states
+        self.table = StreamTable(
+            cfg.max_streams, cfg.idle_timeout_s, self._evicted, st.new_state, st.drop_state
+        )
         self._cond = threading.Condition()
         self._depth = 0  # sectors queued (not running)
         self._ready = False
@@ -121,7 +128,7 @@ class Worker:
         fut: Future[DetectionsReply] = Future()
         now = time.monotonic()
         try:
-            points = self._to_tensor(msg)
+            points = sector_points(msg, self.det.cfg)
             with self._cond:
                 self._admit(msg, points, fut, transport, now)
                 self._cond.notify_all()
@@ -183,43 +190,6 @@ class Worker:
 
     # ------------------------------------------------------------------------------------------ admission
 
-    def _to_tensor(self, msg: SectorMessage) -> torch.Tensor:
-        """Check the sector against the model and convert it; a bad sector never enters a batch."""
-        cfg = self.det.cfg
-        if not 0 <= msg.sector_index < cfg.sectors_per_turn:
-            raise ServiceError(
-                ErrorCode.INVALID_FIELD,
-                f"sector_index: {msg.sector_index}; expected 0..{cfg.sectors_per_turn - 1} "
-                f"(the model splits a turn into {cfg.sectors_per_turn} sectors)",
-                "sector_index",
-            )
-        used = min(len(msg.fields), cfg.vfe.point_features)
-        if tuple(msg.fields[:used]) != POINT_FIELDS[:used]:
-            expected = list(POINT_FIELDS[: cfg.vfe.point_features])
-            raise ServiceError(
-                ErrorCode.INVALID_FIELD,
-                f"fields: {list(msg.fields)}; the model reads the columns {expected} (in this order)",
-                "fields",
-            )
-        points = np.array(msg.points, dtype=np.float32, copy=True)  # (N, C), owns its memory
-        if points.ndim != 2 or points.shape[1] < 4:
-            raise ServiceError(
-                ErrorCode.INVALID_FIELD,
-                f"points: shape {points.shape}; expected 2-D (N, C>=4): x, y, z, intensity[, ...]",
-                "points",
-            )
-        # numpy, not torch: a torch op here would start a second OpenMP team in the transport's thread,
-        # competing for the cores with the device loop's (the model checks its input again anyway)
-        if not np.isfinite(points).all():  # a flat check first: the per-row one is ~30x slower
-            bad = ~np.isfinite(points).all(axis=1)  # (N,)
-            raise ServiceError(
-                ErrorCode.INVALID_FIELD,
-                f"points: {int(bad.sum())} rows contain NaN or inf values (row {int(bad.argmax())} first); "
-                "expected finite float32",
-                "points",
-            )
-        return torch.from_numpy(points)
-
     def _admit(
         self,
         msg: SectorMessage,
@@ -267,6 +237,7 @@ class Worker:
     def _run(self) -> None:
         try:
             self._det, self._source = self._load()
+            self._states.bind(self._det)
             self.metrics.model_loaded(self.model_info())
             self._batch_s = warm_up(self._det, self.cfg.warmup_sectors, self.cfg.max_batch)
         except Exception as e:
@@ -307,10 +278,19 @@ class Worker:
             return None if self._closing else max(0.0, self._next_evict - now)
         heads.sort(key=lambda e: e.pending[0].submitted)
         waited = now - heads[0].pending[0].submitted
-        full = len(heads) >= min(self.cfg.max_batch, len(self.table))
-        if not (full or self._closing or waited >= self.cfg.max_wait_ms / 1e3):
-            return self.cfg.max_wait_ms / 1e3 - waited
-        batch = [e.pending.popleft() for e in heads[: self.cfg.max_batch]]
+        cfg = self.cfg
+        due = decide(
+            len(heads),
+            len(self.table),
+            waited,
+            cfg.max_wait_ms / 1e3,
+            cfg.max_batch,
+            self._states.buckets,
+            self._closing,
+        )
+        if isinstance(due, Wait):
+            return due.seconds
+        batch = [e.pending.popleft() for e in heads[: due.sectors]]
         for p in batch:
             p.entry.running = True
         self._depth -= len(batch)
@@ -347,28 +327,33 @@ class Worker:
     def _run_batch(self, batch: list[Pending]) -> None:
         with self._cond:
             gaps = [self._gap(p) for p in batch]
-            prior = [None if p.msg.reset else p.entry.state for p in batch]  # None: start fresh
+            prior = [self._states.prior(p.entry.state, p.msg.reset) for p in batch]
         t0 = time.monotonic()
-        new_states: list[Any] | None = None
+        new_states: list[Any] = [None] * len(batch)  # None: the stream's state stays as it was
         try:  # anything failing here fails this batch only: the loop and every stream's state go on
             states = [s if s is not None else self.det.init_state() for s in prior]
-            results, new_states = self.det.step([p.points for p in batch], states)
+            names = self.det.cfg.head.class_names
+            results, stepped = self.det.step([p.points for p in batch], states)
             model_s = time.monotonic() - t0
             outcomes: list[Answer] = [
-                (p.future, p.transport, self._reply(p, r, g, t0, model_s))
+                (p.future, p.transport, sector_answer(p, r, g, t0, model_s, names))
                 for p, r, g in zip(batch, results, gaps, strict=True)
+            ]
+            new_states = [
+                None if isinstance(r, SectorRejected) else s for r, s in zip(results, stepped, strict=True)
             ]
         except Exception as e:
             log.exception("forward of a batch of %d failed", len(batch))
-            model_s, new_states = time.monotonic() - t0, None
+            model_s = time.monotonic() - t0
             self.metrics.batch_failures.inc()
             why = f"model failed on this batch of {len(batch)}: {type(e).__name__}: {e}"
             outcomes = [(p.future, p.transport, ServiceError(ErrorCode.INTERNAL, why)) for p in batch]
         self._batch_s = 0.8 * self._batch_s + 0.2 * model_s
         self.metrics.batch_sectors.observe(len(batch))
+        self.metrics.batch_fill.observe(batch_fill(len(batch), self._states.buckets))
         with self._cond:
-            for i, p in enumerate(batch):
-                self._finish(p, None if new_states is None else new_states[i], gaps[i])
+            for p, new_state, gap in zip(batch, new_states, gaps, strict=True):
+                self._finish(p, new_state, gap)
         self._settle(outcomes)
 
     @staticmethod
@@ -378,36 +363,18 @@ class Worker:
         return 0 if p.msg.reset or last is None else max(0, p.msg.seq - last - 1)
 
     def _finish(self, p: Pending, new_state: Any, gap: int) -> None:
-        """Under the lock: write the new state back (unless the batch failed or the stream ended)."""
+        """Under the lock: write the new state back (unless the sector failed or the stream ended: an ended
+        stream's state goes back to the detector now)."""
         e = p.entry
         e.running = False
         e.last_seen = time.monotonic()
+        live = self.table.finished(e)
         if new_state is None:
             e.forget_failed()
-        elif self.table.get(e.stream_id) is e:
+        elif live:
             e.state, e.last_seq, e.last_timestamp_ns = new_state, p.msg.seq, p.msg.timestamp_ns
             e.sectors += 1
             e.gaps += gap
-
-    def _reply(self, p: Pending, r: SectorResult, gap: int, t0: float, model_s: float) -> DetectionsReply:
-        d = r.detections
-        labels = d.labels.cpu().numpy().astype(np.int32)  # (K,)
-        names = self.det.cfg.head.class_names
-        return DetectionsReply(
-            stream_id=p.msg.stream_id,
-            seq=p.msg.seq,
-            boxes=d.boxes.cpu().numpy().astype(np.float32, copy=False),  # (K, 7)
-            scores=d.scores.cpu().numpy().astype(np.float32, copy=False),  # (K,)
-            labels=labels,
-            class_names=tuple(names[i] for i in labels),
-            context_sectors=r.context_sectors,
-            gap=gap,
-            timings=Timings(
-                queue_ms=(t0 - p.submitted) * 1e3,
-                model_ms=model_s * 1e3,
-                total_ms=(time.monotonic() - p.submitted) * 1e3,
-            ),
-        )
 
     def _settle(self, answers: list[Answer]) -> None:
         """Outside the lock: count each sector (before its answer: a client that has it sees it counted) and

@@ -21,6 +21,7 @@ from clients.bench.server import free_port
 from contract import MSGPACK, SectorMessage, encode_sector
 from model.config import tiny
 from model.detector import PHiM
+from model.graph.engine import Detector
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 from server.app import create_app
@@ -149,8 +150,9 @@ def make_settings(**overrides: Any) -> Settings:
 
 
 @contextlib.contextmanager
-def serve(det: StreamingDetector, wait_ready: bool = True, **overrides: Any) -> Iterator[RunningServer]:
-    """A real uvicorn server (thread, 127.0.0.1, free port) around create_app with the given detector."""
+def serve(det: Detector | None, wait_ready: bool = True, **overrides: Any) -> Iterator[RunningServer]:
+    """A real uvicorn server (thread, 127.0.0.1, free port) around create_app with the given detector (None:
+    the one the settings build)."""
     settings = make_settings(**overrides)
     app = create_app(settings, detector=det)
     config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", ws="none", lifespan="on")

@@ -34,6 +34,7 @@ PHIM_FAMILIES = {  # name (as the parser gives it: a counter's without `_total`)
     "phim_max_streams": "gauge",
     "phim_stream_evictions": "counter",
     "phim_batch_sectors": "histogram",
+    "phim_batch_fill_ratio": "histogram",
     "phim_batch_failures": "counter",
     "phim_queue_latency_seconds": "histogram",
     "phim_model_latency_seconds": "histogram",
@@ -88,7 +89,7 @@ def test_names_follow_the_conventions(scraped):
             assert not any(n.endswith("_total") for n in names) and not name.endswith("_total"), name
         assert not name.endswith("_created"), name  # no created-timestamp gauges beside the counters
         if family.type == "histogram" and name.startswith("phim_"):
-            assert name.endswith(("_seconds", "_sectors")), name  # the unit is in the name
+            assert name.endswith(("_seconds", "_sectors", "_ratio")), name  # the unit is in the name
 
 
 def test_every_metric_is_documented(scraped):
@@ -138,6 +139,7 @@ def test_a_sector_is_counted_once_under_its_transport_and_outcome(scraped):
     assert counted == {("http", "ok"): 1, ("http", "bad_request"): 1}
     assert value(families, "phim_batch_sectors", "phim_batch_sectors_count") == 1  # one forward ...
     assert value(families, "phim_batch_sectors", "phim_batch_sectors_sum") == 1  # ... of one sector
+    assert value(families, "phim_batch_fill_ratio", "phim_batch_fill_ratio_sum") == 1  # eager: unpadded
     gauges = ("phim_ready", "phim_live_streams", "phim_queued_sectors", "phim_max_queued_sectors")
     assert [value(families, g) for g in gauges] == [1, 1, 0, 64]
     assert value(families, "phim_stream_evictions", "phim_stream_evictions_total") == 0

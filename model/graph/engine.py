@@ -1,9 +1,12 @@
 """`GraphStreamingDetector`: the streaming API of `model.stream.StreamingDetector` over the fixed-shape step.
 
-The host pads the batch to its buckets (`model.graph.buckets`), runs the step (compiled with torch.compile
-where asked), copies one flat tensor back (candidates, stats, site counts), re-runs the step with larger
-capacities if any sites did not fit, and runs NMS on the candidates. Stream states are fixed-shape tensors
-on the device (`GraphStreamState`); input states are never modified, so a failed step changes nothing.
+Stream states live on the device in preallocated slots (`model.graph.slots.StateSlots`); a state is a small
+handle (`SlotState`). The host pads the batch to its buckets (`model.graph.buckets`), gathers the batch's
+state rows, runs the step (compiled with torch.compile where asked), copies one flat tensor back
+(candidates, stats, site counts), re-runs the step with larger capacities if any sites did not fit, runs NMS
+on the candidates and, only then, writes the new state rows back: a failed step changes no slot. A sector
+with more voxels than `sector_voxels` fails alone (`SectorRejected`): the batch's other streams get their
+results and new states, its stream keeps its state.
 """
 
 from __future__ import annotations
@@ -18,49 +21,62 @@ from model.config import Engine
 from model.detector import PHiM
 from model.geometry.boxes import Detections
 from model.graph.buckets import CapacityPlanner, batch_bucket, row_bucket
+from model.graph.slots import GraphStreamState, SlotState, StateSlots, StepStates, from_stream_state
 from model.graph.step import STATS, GraphStep
 from model.layers.head import Candidates, select_detections
-from model.layers.voxelize import PointsError
 from model.stream import SectorResult, StreamingDetector, StreamState
 
 log = logging.getLogger(__name__)
 
+__all__ = ["GraphStreamState", "GraphStreamingDetector", "SectorRejected", "SlotState", "from_stream_state"]
+DEFAULT_SLOTS = 32  # stream-state slots of a detector built without a count (the largest batch bucket)
+
 
 @dataclass(frozen=True)
-class GraphStreamState:
-    """One stream's state in the graph step's fixed shapes (S = `sector_voxels`)."""
+class SectorRejected:
+    """A sector its stream could not run (the batch's other streams ran); the stream's state is unchanged."""
 
-    conv: tuple[Tensor, ...]  # per PHiM block (di, d_conv - 1): the global Mamba's conv state
-    ssm: tuple[Tensor, ...]  # per PHiM block (di, N)
-    feats: Tensor  # (keep, S, C) backbone outputs of the last `keep` sectors, oldest first
-    cols: Tensor  # (keep, S, 2) int64 polar column (r, theta) of each row
-    valid: Tensor  # (keep, S) bool
-    sectors_seen: int
+    field: str  # the sector message's field at fault
+    message: str  # what was wrong and what is expected
+    voxels: int  # the sector's voxels
 
-    @property
-    def buffered_sectors(self) -> int:
-        return min(self.sectors_seen, self.valid.shape[0])
+
+SectorOutcome = SectorResult | SectorRejected
 
 
 class GraphStreamingDetector:
-    """`step(points, states)` as StreamingDetector's, on the fixed-shape step; `compile` runs it through
-    torch.compile(fullgraph=True), one specialisation per (batch, capacity) bucket."""
+    """`step(points, states)` as StreamingDetector's, on the fixed-shape step, for at most `slots` streams
+    at once; `compile` runs it through torch.compile(fullgraph=True), one specialisation per (batch,
+    capacity) bucket."""
 
-    def __init__(self, model: PHiM, sector_voxels: int = 8192, compile: bool = False):
+    def __init__(
+        self, model: PHiM, sector_voxels: int = 8192, compile: bool = False, slots: int = DEFAULT_SLOTS
+    ):
         self.reference = StreamingDetector(model)  # folds the batchnorms; validation and initial states
         self.model = self.reference.model
         self.cfg = model.cfg
         self.step_module = GraphStep(self.model, sector_voxels)
         self.planner = CapacityPlanner(len(self.step_module.keys), len(self.step_module.tables))
         self.engine = Engine.GRAPH if compile else Engine.FIXED
-        self._blank: GraphStreamState | None = None  # a fresh state: pads a batch to its bucket
+        d = self.model.backbone.cfg.d_model
+        blank = from_stream_state(self.reference.init_state(), self.cfg.buffer_sectors, sector_voxels, d)
+        self.slots = StateSlots(blank, slots)
         if compile:
             cfg = torch._dynamo.config
             cfg.recompile_limit = max(cfg.recompile_limit, 64)  # one graph per bucket
             self._run = torch.compile(self.step_module, fullgraph=True, dynamic=False)
         else:
             self._run = self.step_module
-        log.info("graph streaming detector: sector_voxels=%d compile=%s", sector_voxels, compile)
+        log.info(
+            "graph streaming detector: sector_voxels=%d compile=%s state slots: %d x %.2f MiB = %.1f MiB "
+            "on %s",
+            sector_voxels,
+            compile,
+            slots,
+            self.slots.slot_bytes / 2**20,
+            self.slots.total_bytes / 2**20,
+            self.slots.device,
+        )
 
     @property
     def device(self) -> torch.device:
@@ -71,77 +87,130 @@ class GraphStreamingDetector:
         return self.step_module.sector_voxels
 
     def calibrate(self, sectors: list[Tensor]) -> None:
-        """Learn the capacity ratios from sample sectors with the uncompiled step, so that a compiled
-        detector compiles its serving buckets only."""
+        """Learn the capacity ratios from sample sectors with the uncompiled step (one slot, given back), so
+        that a compiled detector compiles its serving buckets only."""
         run, self._run = self._run, self.step_module
+        state = taken = self.init_state()
         try:
-            state = self.init_state()
             for s in sectors:
                 _, (state,) = self.step([s], [state])
         finally:
             self._run = run
+            self.release(taken)
 
     def validate(self, points: Tensor) -> None:
         self.reference.validate(points)
 
-    def init_state(self) -> GraphStreamState:
-        d = self.model.backbone.cfg.d_model
-        return from_stream_state(self.reference.init_state(), self.cfg.buffer_sectors, self.sector_voxels, d)
+    def init_state(self) -> SlotState:
+        """A fresh state in a free slot (SlotsExhausted when none is free); `release` gives it back."""
+        return self.slots.acquire()
 
-    def reset(self, state: GraphStreamState | None = None) -> GraphStreamState:
-        return self.init_state()
+    def reset(self, state: SlotState | None = None) -> SlotState:
+        """A fresh state: in `state`'s slot (nothing is written), or in a free slot."""
+        if state is None:
+            return self.init_state()
+        self.slots.check([state])
+        return state.fresh()
+
+    def release(self, state: SlotState) -> None:
+        self.slots.release(state)
+
+    def read_state(self, state: SlotState) -> GraphStreamState:
+        """A copy of the state's tensors (tests compare them with the eager detector's)."""
+        return self.slots.read(state)
+
+    def from_stream_state(self, state: StreamState) -> SlotState:
+        """An eager state, written into a free slot; ValueError (and no slot taken) if a buffered sector has
+        more than `sector_voxels` voxels."""
+        d = self.model.backbone.cfg.d_model
+        tensors = from_stream_state(state, self.cfg.buffer_sectors, self.sector_voxels, d)
+        return self.slots.write(self.init_state(), tensors)
 
     @torch.inference_mode()
     def step(
-        self, points: list[Tensor], states: list[GraphStreamState]
-    ) -> tuple[list[SectorResult], list[GraphStreamState]]:
-        """One sector per stream: points[i] (N_i, C) float32 goes with states[i]."""
+        self, points: list[Tensor], states: list[SlotState]
+    ) -> tuple[list[SectorOutcome], list[SlotState]]:
+        """One sector per stream: points[i] (N_i, C) float32 goes with states[i]. Per stream: its result and
+        new state, or SectorRejected and its state as it was."""
         if len(points) != len(states):
             raise ValueError(f"{len(points)} sectors but {len(states)} states")
         for p in points:
             self.validate(p)
-        n, b = len(points), batch_bucket(len(points))
-        if self._blank is None:
-            self._blank = self.init_state()
-        inputs = self.inputs(points, [*states, *[self._blank] * (b - n)])
+        self.slots.check(states)
+        n = len(points)
+        cand, stats, new = self._forward(points, self.inputs(points, states, batch_bucket(n)))
+        voxels = [int(v) for v in stats[:n, STATS.index("voxels")]]
+        ok = [i for i, v in enumerate(voxels) if v <= self.sector_voxels]
+        results = self._results(cand[:n], stats[:n], states)
+        self._write_back(new, [states[i].slot for i in ok], ok)  # last: a failure before it changes nothing
+        ran = set(ok)
+        outcomes = [r if i in ran else self._rejected(voxels[i]) for i, r in enumerate(results)]
+        new_states = [
+            SlotState(s.slot, s.sectors_seen + 1, s.keep, s.generation) if i in ran else s
+            for i, s in enumerate(states)
+        ]
+        return outcomes, new_states
+
+    @torch.inference_mode()
+    def run_fresh(self, points: list[Tensor]) -> list[SectorOutcome]:
+        """The step for len(points) fresh streams padded to their bucket, writing no slot (warm-up compiles
+        a bucket with it)."""
+        for p in points:
+            self.validate(p)
+        fresh = [SlotState(self.slots.blank_row, 0, self.slots.keep, 0)] * len(points)  # reads the blank row
+        cand, stats, _ = self._forward(points, self.inputs(points, fresh, batch_bucket(len(points))))
+        return self._results(cand, stats[: len(points)], fresh)
+
+    def inputs(self, points: list[Tensor], states: list[SlotState], batch: int | None = None) -> list:
+        """The step's inputs: the sectors padded to (B, Np, C) and the B streams' state rows (B = `batch`, or
+        len(states); the padding streams read the blank row)."""
+        b = len(states) if batch is None else batch
+        width = max(int(p.shape[1]) for p in points)
+        rows = row_bucket(max(int(p.shape[0]) for p in points))
+        padded = torch.zeros(b, rows, width)  # (B, Np, C)
+        for i, p in enumerate(points):
+            padded[i, : p.shape[0], : p.shape[1]] = p
+        counts = torch.tensor([int(p.shape[0]) for p in points] + [0] * (b - len(points)))  # (B,)
+        dev = self.device
+        st = self.slots.gather(self.slots.read_rows(states, b))
+        return [
+            padded.to(dev, non_blocking=True),
+            counts.to(dev, non_blocking=True),
+            st.conv,
+            st.ssm,
+            st.feats,
+            st.cols,
+            st.valid,
+        ]
+
+    def _forward(self, points: list[Tensor], inputs: list) -> tuple[Tensor, Tensor, StepStates]:
+        """Run the step until its sites fit -> candidates (B, K, 10), stats (B, 3) on the host, new states."""
         total = sum(int(p.shape[0]) for p in points)
-        layout = self.step_module.host_layout(b)
+        layout = self.step_module.host_layout(int(inputs[0].shape[0]))
         while True:
             cap = self.planner.capacity(max(int(p.shape[0]) for p in points), total)
             host, *new = self._run(*inputs, cap)
             cand, stats, counts = layout.split(host.cpu())  # the step's one device -> host copy
             if self.planner.fits(cap, counts[:-1].tolist(), total):
-                break
+                return cand, stats, StepStates(*new)
             log.info("graph step: sites did not fit %s (counts %s); running it again", cap, counts.tolist())
-        largest = int(counts[-1])
-        if largest > self.sector_voxels:
-            raise PointsError(
-                f"points: a sector of {largest} voxels; the graph step buffers at most {self.sector_voxels} "
-                "per sector (sector_voxels)"
-            )
-        return self._results(cand[:n], stats[:n], states), self._states(new, states)
 
-    def inputs(self, points: list[Tensor], states: list[GraphStreamState]) -> list:
-        """Pad the sectors to (B, Np, C) and stack the states."""
-        width = max(int(p.shape[1]) for p in points)
-        rows = row_bucket(max(int(p.shape[0]) for p in points))
-        padded = torch.zeros(len(states), rows, width)  # (B, Np, C)
-        for i, p in enumerate(points):
-            padded[i, : p.shape[0], : p.shape[1]] = p
-        counts = torch.tensor([int(p.shape[0]) for p in points] + [0] * (len(states) - len(points)))
-        dev = self.device
-        blocks = range(len(states[0].conv))
-        return [
-            padded.to(dev, non_blocking=True),
-            counts.to(dev, non_blocking=True),
-            [torch.stack([s.conv[k] for s in states]) for k in blocks],
-            [torch.stack([s.ssm[k] for s in states]) for k in blocks],
-            torch.stack([s.feats for s in states]),
-            torch.stack([s.cols for s in states]),
-            torch.stack([s.valid for s in states]),
-        ]
+    def _write_back(self, new: StepStates, slots: list[int], picks: list[int]) -> None:
+        """Stream picks[k]'s new rows into slot slots[k]."""
+        if picks:
+            dev = self.device
+            self.slots.scatter(torch.tensor(slots, device=dev), new, torch.tensor(picks, device=dev))
 
-    def _results(self, cand: Tensor, stats: Tensor, states: list[GraphStreamState]) -> list[SectorResult]:
+    def _rejected(self, voxels: int) -> SectorRejected:
+        return SectorRejected(
+            "points",
+            f"points: a sector of {voxels} voxels; the {self.engine.value} engine buffers at most "
+            f"{self.sector_voxels} voxels per sector (sector_voxels): raise it (phim serve --sector-voxels, "
+            "PHIM_SECTOR_VOXELS) or send fewer points",
+            voxels,
+        )
+
+    def _results(self, cand: Tensor, stats: Tensor, states: list[SlotState]) -> list[SectorResult]:
         """cand (n, K, 10), stats (n, 3) on the host -> each stream's detections after NMS."""
         c = Candidates(cand[..., :7], cand[..., 7], cand[..., 8].long(), cand[..., 9] > 0)
         dets: list[Detections] = select_detections(c, self.cfg.head)
@@ -151,50 +220,14 @@ class GraphStreamingDetector:
             for d, s, st in zip(dets, states, stats, strict=True)
         ]
 
-    def _states(self, new: list, states: list[GraphStreamState]) -> list[GraphStreamState]:
-        conv, ssm, feats, cols, valid = new
-        return [
-            GraphStreamState(
-                tuple(c[i] for c in conv),
-                tuple(h[i] for h in ssm),
-                feats[i],
-                cols[i],
-                valid[i],
-                s.sectors_seen + 1,
-            )
-            for i, s in enumerate(states)
-        ]
 
-
-def from_stream_state(state: StreamState, keep: int, sector_voxels: int, channels: int) -> GraphStreamState:
-    """An eager stream state in the graph step's shapes: `keep` buffer slots of `sector_voxels` rows, the
-    latest sector last; ValueError if a buffered sector has more rows."""
-    dev = state.mamba[0].conv.device
-    feats = torch.zeros(keep, sector_voxels, channels, device=dev)
-    cols = torch.zeros(keep, sector_voxels, 2, dtype=torch.int64, device=dev)
-    valid = torch.zeros(keep, sector_voxels, dtype=torch.bool, device=dev)
-    for slot, sector in zip(range(keep - len(state.buffer), keep), state.buffer, strict=True):
-        n = sector.num_voxels
-        if n > sector_voxels:
-            raise ValueError(f"a buffered sector of {n} voxels; the graph state holds {sector_voxels}")
-        feats[slot, :n] = sector.features
-        cols[slot, :n] = sector.coords[:, :2]  # (r, theta)
-        valid[slot, :n] = True
-    return GraphStreamState(
-        conv=tuple(m.conv[0] for m in state.mamba),
-        ssm=tuple(m.ssm[0] for m in state.mamba),
-        feats=feats,
-        cols=cols,
-        valid=valid,
-        sectors_seen=state.sectors_seen,
-    )
-
-
-def streaming_detector(model: PHiM, engine: Engine, sector_voxels: int = 8192) -> Detector:
-    """The detector that runs `model` with `engine`."""
+def streaming_detector(
+    model: PHiM, engine: Engine, sector_voxels: int = 8192, slots: int = DEFAULT_SLOTS
+) -> Detector:
+    """The detector that runs `model` with `engine` (a fixed-shape one with `slots` stream-state slots)."""
     if engine is Engine.EAGER:
         return StreamingDetector(model)
-    return GraphStreamingDetector(model, sector_voxels, compile=engine is Engine.GRAPH)
+    return GraphStreamingDetector(model, sector_voxels, compile=engine is Engine.GRAPH, slots=slots)
 
 
 Detector = StreamingDetector | GraphStreamingDetector  # what the server runs

@@ -1,0 +1,36 @@
+"""A sector's answer from its step outcome: its detections, or its own error when the step rejected it."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from contract import DetectionsReply, ErrorCode, ServiceError, Timings
+from model.graph.engine import SectorOutcome, SectorRejected
+from server.streams import Pending
+
+
+def sector_answer(
+    p: Pending, r: SectorOutcome, gap: int, t0: float, model_s: float, class_names: tuple[str, ...]
+) -> DetectionsReply | ServiceError:
+    """t0: time.monotonic() when the forward started; model_s: its seconds."""
+    if isinstance(r, SectorRejected):  # too big for the fixed-shape step: this sector only, state unchanged
+        return ServiceError(ErrorCode.INVALID_FIELD, f"{r.message} (seq {p.msg.seq} not run)", r.field)
+    d = r.detections
+    labels = d.labels.cpu().numpy().astype(np.int32)  # (K,)
+    return DetectionsReply(
+        stream_id=p.msg.stream_id,
+        seq=p.msg.seq,
+        boxes=d.boxes.cpu().numpy().astype(np.float32, copy=False),  # (K, 7)
+        scores=d.scores.cpu().numpy().astype(np.float32, copy=False),  # (K,)
+        labels=labels,
+        class_names=tuple(class_names[i] for i in labels),
+        context_sectors=r.context_sectors,
+        gap=gap,
+        timings=Timings(
+            queue_ms=(t0 - p.submitted) * 1e3,
+            model_ms=model_s * 1e3,
+            total_ms=(time.monotonic() - p.submitted) * 1e3,
+        ),
+    )
