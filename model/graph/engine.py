@@ -191,7 +191,7 @@ class GraphStreamingDetector:
             cap = self.planner.capacity(max(int(p.shape[0]) for p in points), total)
             host, *new = self._run(*inputs, cap)
             cand, stats, counts = layout.split(host.cpu())  # the step's one device -> host copy
-            if self.planner.fits(cap, counts[:-1].tolist(), total):
+            if self.planner.fits(cap, counts.tolist(), total):
                 return cand, stats, StepStates(*new)
             log.info("graph step: sites did not fit %s (counts %s); running it again", cap, counts.tolist())
 

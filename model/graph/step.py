@@ -67,7 +67,7 @@ class HostLayout:
 
     batch: int
     top_k: int
-    counts: int  # voxels, sites (a) and (c) per coarse key, pairs (a), (b), (c) per table key, largest sector
+    counts: int  # voxels, sites (a) and (c) per coarse key, pairs (a), (b), (c) per table key
 
     @property
     def candidate_width(self) -> int:
@@ -164,7 +164,7 @@ class GraphStep(nn.Module):
         top_k = min(
             self.cfg.head.pre_nms_top_k, len(self.cfg.head.class_names) * self.cfg.bev.nx * self.cfg.bev.ny
         )
-        return HostLayout(batch, top_k, 2 + 2 * len(self.keys) + 3 * len(self.tables))
+        return HostLayout(batch, top_k, 1 + 2 * len(self.keys) + 3 * len(self.tables))
 
     def forward(
         self,
@@ -196,7 +196,6 @@ class GraphStep(nn.Module):
             new_conv.append(st.conv)
             new_ssm.append(st.ssm)
         new_f, new_c, new_v, n_vox = self._sector_rows(sites, x)
-        site_counts.append(n_vox.max())
         feats = torch.cat([buf_feats, new_f[:, None]], 1)  # (B, keep + 1, S, C)
         cols = torch.cat([buf_cols, new_c[:, None]], 1)
         valid = torch.cat([buf_valid, new_v[:, None]], 1)
