@@ -14,13 +14,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from model.config import Engine
+from model.config import Engine, Precision
 from model.detector import PHiM
 from model.geometry.boxes import Detections
 from model.graph.buckets import CapacityPlanner, batch_bucket, row_bucket
 from model.graph.step import STATS, GraphStep
 from model.layers.head import Candidates, select_detections
 from model.layers.voxelize import PointsError
+from model.precision import autocast
 from model.stream import SectorResult, StreamingDetector, StreamState
 
 log = logging.getLogger(__name__)
@@ -44,10 +45,19 @@ class GraphStreamState:
 
 class GraphStreamingDetector:
     """`step(points, states)` as StreamingDetector's, on the fixed-shape step; `compile` runs it through
-    torch.compile(fullgraph=True), one specialisation per (batch, capacity) bucket."""
+    torch.compile(fullgraph=True), one specialisation per (batch, capacity) bucket; the step runs in
+    `precision` (`model.precision`)."""
 
-    def __init__(self, model: PHiM, sector_voxels: int = 8192, compile: bool = False):
-        self.reference = StreamingDetector(model)  # folds the batchnorms; validation and initial states
+    def __init__(
+        self,
+        model: PHiM,
+        sector_voxels: int = 8192,
+        compile: bool = False,
+        precision: Precision = Precision.FP32,
+    ):
+        # folds the batchnorms, checks the precision; validation and initial states
+        self.reference = StreamingDetector(model, precision=precision)
+        self.precision = precision
         self.model = self.reference.model
         self.cfg = model.cfg
         self.step_module = GraphStep(self.model, sector_voxels)
@@ -108,7 +118,8 @@ class GraphStreamingDetector:
         layout = self.step_module.host_layout(b)
         while True:
             cap = self.planner.capacity(max(int(p.shape[0]) for p in points), total)
-            host, *new = self._run(*inputs, cap)
+            with autocast(self.precision, self.device):
+                host, *new = self._run(*inputs, cap)
             cand, stats, counts = layout.split(host.cpu())  # the step's one device -> host copy
             if self.planner.fits(cap, counts[:-1].tolist(), total):
                 break
@@ -190,11 +201,13 @@ def from_stream_state(state: StreamState, keep: int, sector_voxels: int, channel
     )
 
 
-def streaming_detector(model: PHiM, engine: Engine, sector_voxels: int = 8192) -> Detector:
-    """The detector that runs `model` with `engine`."""
+def streaming_detector(
+    model: PHiM, engine: Engine, sector_voxels: int = 8192, precision: Precision = Precision.FP32
+) -> Detector:
+    """The detector that runs `model` with `engine` in `precision`."""
     if engine is Engine.EAGER:
-        return StreamingDetector(model)
-    return GraphStreamingDetector(model, sector_voxels, compile=engine is Engine.GRAPH)
+        return StreamingDetector(model, precision=precision)
+    return GraphStreamingDetector(model, sector_voxels, compile=engine is Engine.GRAPH, precision=precision)
 
 
 Detector = StreamingDetector | GraphStreamingDetector  # what the server runs
