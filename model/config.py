@@ -33,6 +33,15 @@ class Engine(enum.StrEnum):
     GRAPH = "graph"  # model.graph: the fixed-shape step through torch.compile(fullgraph=True)
 
 
+class Precision(enum.StrEnum):
+    """The dtype a streaming step's matmuls and convs run in (weights, states and outputs stay float32)."""
+
+    FP32 = "fp32"  # everything in float32, the reference
+    # torch.autocast to bfloat16 (model.precision): matmul/conv inputs rounded to bf16, float32 accumulation;
+    # the selective scan's recurrence, norms and box decoding stay float32. Meant for CUDA
+    BF16 = "bf16"
+
+
 class HeadingCode(enum.StrEnum):
     """How the head encodes a box's yaw."""
 

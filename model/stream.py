@@ -14,13 +14,15 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from model.config import Engine
+from model.config import Engine, Precision
 from model.detector import PHiM, SectorFeatures
 from model.fold_bn import fold_batchnorms
 from model.geometry.boxes import Detections
+from model.layers.head import decode
 from model.layers.mamba import MambaState
 from model.layers.phim_block import StreamLayout
 from model.layers.voxelize import PointsError, validate_points
+from model.precision import autocast, check_precision
 
 log = logging.getLogger(__name__)
 
@@ -45,18 +47,22 @@ class SectorResult:
 
 
 class StreamingDetector:
-    def __init__(self, model: PHiM, fold_bn: bool = True):
+    def __init__(self, model: PHiM, fold_bn: bool = True, precision: Precision = Precision.FP32):
         """Runs `model` in eval mode; with `fold_bn` an inference copy of it with every BatchNorm folded into
-        the conv before it (`model.fold_bn`: the same outputs up to float rounding, a little faster)."""
+        the conv before it (`model.fold_bn`: the same outputs up to float rounding, a little faster). The
+        forward runs in `precision` (`model.precision`; ValueError where the device cannot)."""
+        check_precision(precision, model.device)
         self.model = fold_batchnorms(model) if fold_bn else model.eval()
         self.cfg = model.cfg
         self.engine = Engine.EAGER
+        self.precision = precision
         log.info(
-            "streaming detector: config=%s device=%s scan=%s batchnorms folded=%s",
+            "streaming detector: config=%s device=%s scan=%s batchnorms folded=%s precision=%s",
             self.cfg.name,
             model.device,
             self.cfg.backbone.mamba.scan.value,
             fold_bn,
+            precision.value,
         )
 
     @property
@@ -95,9 +101,11 @@ class StreamingDetector:
         per_block = [
             MambaState.cat([s.mamba[k] for s in states]) for k in range(len(self.model.backbone.blocks))
         ]
-        enc = self.model.encode(points, layout, per_block)
-        scenes = [[*s.buffer, new] for s, new in zip(states, enc.sectors, strict=True)]
-        detections = self.model.detect(scenes)
+        with autocast(self.precision, dev):
+            enc = self.model.encode(points, layout, per_block)
+            scenes = [[*s.buffer, new] for s, new in zip(states, enc.sectors, strict=True)]
+            maps = self.model.predict(scenes)  # float32 maps
+        detections = decode(maps, self.cfg.head, self.cfg.bev)
         keep = self.cfg.buffer_sectors
         results, new_states = [], []
         for i, (s, scene) in enumerate(zip(states, scenes, strict=True)):

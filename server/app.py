@@ -36,7 +36,7 @@ from contract import (
     encode_reply,
 )
 from model.checkpoint import load_checkpoint
-from model.config import Engine, get_config
+from model.config import Engine, Precision, get_config
 from model.device import pick_device
 from model.graph.engine import Detector, streaming_detector
 from server.default_model import init_model, load_default_model
@@ -71,12 +71,19 @@ def build_detector(settings: Settings) -> tuple[Detector, str]:
             load_checkpoint(settings.checkpoint, expected, device),
             f"checkpoint {settings.checkpoint}",
         )
-    det = streaming_detector(model, Engine(settings.engine), settings.sector_voxels, settings.max_streams)
+    det = streaming_detector(
+        model,
+        Engine(settings.engine),
+        settings.sector_voxels,
+        settings.max_streams,
+        Precision(settings.precision),
+    )
     log.info(
-        "model: config=%s device=%s engine=%s scan=%s weights=%s",
+        "model: config=%s device=%s engine=%s precision=%s scan=%s weights=%s",
         det.cfg.name,
         det.device,
         settings.engine,
+        settings.precision,
         det.cfg.backbone.mamba.scan.value,
         source,
     )

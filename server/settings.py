@@ -58,6 +58,11 @@ class Settings(BaseSettings):
         ge=256,
         description="fixed/graph: voxels a stream buffers per sector (a sector with more fails alone: 422).",
     )
+    precision: Literal["fp32", "bf16"] = Field(
+        "fp32",
+        description="The forward's precision: fp32, or bf16 (autocast: matmuls and convs in bfloat16, "
+        "scan and outputs float32; meant for CUDA, slow on CPUs without AMX).",
+    )
     # scheduler and stream table
     max_batch: int = Field(8, ge=1, description="Streams per forward.")
     max_wait_ms: float = Field(

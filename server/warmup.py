@@ -81,6 +81,7 @@ def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
         "scan": cfg.backbone.mamba.scan.value,  # as configured (auto: the best available)
         "scan_impl": resolve_scan(cfg.backbone.mamba.scan, det.device).value,  # what runs on this device
         "engine": det.engine.value,
+        "precision": det.precision.value,
         "sector_voxels": det.sector_voxels if isinstance(det, GraphStreamingDetector) else None,
         **slot_info(det),
         "classes": list(cfg.head.class_names),

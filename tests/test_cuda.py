@@ -173,3 +173,25 @@ def test_graph_step_on_cuda_equals_eager_on_cuda(models, compile):
     graph.calibrate([s.cuda() for s in turns[0]])
     batches = [[t[k].cuda() for t in turns] for k in range(gpu.cfg.sectors_per_turn)] * 2
     run_both(graph, StreamingDetector(gpu), batches)
+
+
+@pytest.mark.parametrize("compile", [False, True])
+def test_bf16_graph_step_on_cuda_agrees_with_fp32(compile):
+    """`--precision bf16` on the graph engine (op by op, and compiled): the shipped model's detections on a
+    KITTI turn agree with its fp32 ones as on the CPU (test_precision), states and outputs stay float32."""
+    from test_precision import assert_agree
+
+    from model.config import Precision
+    from model.graph.engine import GraphStreamingDetector
+    from server.default_model import load_default_model
+
+    model = load_default_model(CUDA)[0]
+    sectors = [s.cuda() for s in split_turn(kitti_scan(0), model.cfg.sectors_per_turn)]
+    fp32, _ = stream(StreamingDetector(model), sectors)
+    det = GraphStreamingDetector(model, compile=compile, precision=Precision.BF16)
+    det.calibrate(sectors)
+    bf16, state = stream(det, sectors)
+    assert all(t.dtype == torch.float32 for t in (*state.conv, *state.ssm, state.feats))
+    got = bf16[-1].detections
+    assert (got.boxes.dtype, got.scores.dtype) == (torch.float32, torch.float32)
+    assert_agree(fp32[-1].detections.to(torch.device("cpu")), got.to(torch.device("cpu")))

@@ -1,4 +1,4 @@
-"""Tiled pair convs (model/graph/pairs.py) against the implicit-GEMM twin `conv_fixed` over the same tables."""
+"""Tiled pair convs (model/graph/pairs.py) against the twin `conv_fixed` on the same tables."""
 
 from __future__ import annotations
 

@@ -91,7 +91,8 @@ def test_sites_that_do_not_fit_run_again_never_truncated(model: PHiM):
     sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
     graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
     p = graph.planner
-    graph.planner = CapacityPlanner(p.num_keys, p.num_tables, [0.001] * (1 + 2 * p.num_keys + 3 * p.num_tables))
+    tiny_ratios = [0.001] * (1 + 2 * p.num_keys + 3 * p.num_tables)
+    graph.planner = CapacityPlanner(p.num_keys, p.num_tables, tiny_ratios)
     run_both(graph, eager, [[s] for s in sectors])
     assert all(r > 0.01 for r in graph.planner.ratios)  # learned from the counts the steps reported
 

@@ -25,11 +25,13 @@ def test_model_info_paper_is_within_ten_percent_of_the_papers_parameters(tmp_pat
     assert info["gflops"] > 0 and info["input_points"] == 4000
 
 
-def test_bench_model_runs_the_shipped_weights() -> None:
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_bench_model_runs_the_shipped_weights(precision: str) -> None:
     args = ["bench", "model", "--config", "tiny", "--checkpoint", "default", "--turns", "1", "--json"]
-    result = CliRunner().invoke(app, args)
+    result = CliRunner().invoke(app, [*args, "--precision", precision])
     assert result.exit_code == 0, result.output
     bench = json.loads(result.output.strip().splitlines()[-1])
+    assert bench["precision"] == precision
     assert bench["device"] == "cpu" and bench["sectors_per_turn"] == 4 and bench["iterations"] == 4
     assert 0 < bench["p50_ms"] <= bench["p90_ms"] and bench["peak_mem_mb"] > 0
 

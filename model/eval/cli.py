@@ -8,7 +8,14 @@ from pathlib import Path
 
 import click
 
-from model.tools.options import checkpoint_option, data_option, device_option, held_out_seed_option
+from model.config import Precision
+from model.tools.options import (
+    checkpoint_option,
+    data_option,
+    device_option,
+    held_out_seed_option,
+    precision_option,
+)
 from phim.options import json_option
 
 NewFile = click.Path(dir_okay=False, path_type=Path)
@@ -39,6 +46,7 @@ def scans_option(default: int, what: str):
     help="Score a predictions .npz (from --predictions) instead of running a model.",
 )
 @device_option()
+@precision_option
 def eval_cmd(
     checkpoint: str,
     data: str,
@@ -49,6 +57,7 @@ def eval_cmd(
     pictures: Path | None,
     rescore: Path | None,
     device: str,
+    precision: Precision,
 ) -> None:
     """Waymo-style AP/APH per class and level, per buffer fill (the full turn and each buffered count)."""
     from model.checkpoint import resolve_checkpoint
@@ -74,8 +83,8 @@ def eval_cmd(
         results = run_rescore(read_predictions_by_fill(rescore), range(count), source, on_scan)
     else:
         model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
-        what = f"checkpoint {ckpt_path}"
-        results = run_eval(model, range(count), source, on_scan)
+        what = f"checkpoint {ckpt_path}, precision {precision.value}"
+        results = run_eval(model, range(count), source, on_scan, precision)
     metrics = score(results)
     if predictions is not None:
         write_predictions(predictions, results)

@@ -17,11 +17,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from model.config import Precision
 from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import GroundTruth, LabeledScan, Predictions
 from model.detector import PHiM
 from model.eval.metrics import MetricsConfig, crop_to_fov, evaluate
+from model.layers.head import decode
 from model.layers.phim_block import StreamLayout
+from model.precision import autocast, check_precision
 
 
 @dataclass(frozen=True)
@@ -50,14 +53,17 @@ def crop_prediction(p: Predictions, b: int, sectors: int, fov: tuple[float, floa
 
 
 @torch.inference_mode()
-def predict_scan(model: PHiM, scan: LabeledScan) -> ScanResult:
+def predict_scan(model: PHiM, scan: LabeledScan, precision: Precision = Precision.FP32) -> ScanResult:
+    """The predictions at every fill level; the forward runs in `precision`, the decoding in float32."""
     cfg = model.cfg
     n = cfg.sectors_per_turn
     points = feature_columns(scan, cfg.vfe.point_features)  # (N, C)
     sector = sector_of_xy(points[:, 0], points[:, 1], n)  # (N,)
     sectors = [torch.from_numpy(np.ascontiguousarray(points[sector == k])).to(model.device) for k in range(n)]
-    enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
-    dets = model.detect([enc.sectors[: b + 1] for b in range(n)])
+    with autocast(precision, model.device):
+        enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
+        maps = model.predict([enc.sectors[: b + 1] for b in range(n)])  # float32 maps
+    dets = decode(maps, cfg.head, cfg.bev)
     preds = [
         crop_prediction(
             Predictions(d.boxes.cpu().numpy(), d.scores.cpu().numpy(), d.labels.cpu().numpy()),
@@ -101,13 +107,16 @@ def run_eval(
     scans: Sequence[int] | range,
     source: Callable[[int], LabeledScan],
     on_scan: Callable[[LabeledScan, ScanResult], None] | None = None,
+    precision: Precision = Precision.FP32,
 ) -> list[ScanResult]:
-    """Predict scans source(i) for i in `scans`; `on_scan` sees each scan and its result (pictures)."""
+    """Predict scans source(i) for i in `scans` in `precision`; `on_scan` sees each scan and its result
+    (pictures)."""
+    check_precision(precision, model.device)
     model.eval()
     out = []
     for i in scans:
         scan = source(i)
-        r = predict_scan(model, scan)
+        r = predict_scan(model, scan, precision)
         out.append(r)
         if on_scan is not None:
             on_scan(scan, r)

@@ -17,13 +17,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from model.config import Engine
+from model.config import Engine, Precision
 from model.detector import PHiM
 from model.geometry.boxes import Detections
 from model.graph.buckets import CapacityPlanner, batch_bucket, row_bucket
 from model.graph.slots import GraphStreamState, SlotState, StateSlots, StepStates, from_stream_state
 from model.graph.step import STATS, GraphStep
 from model.layers.head import Candidates, select_detections
+from model.precision import autocast
 from model.stream import SectorResult, StreamingDetector, StreamState
 
 log = logging.getLogger(__name__)
@@ -47,12 +48,19 @@ SectorOutcome = SectorResult | SectorRejected
 class GraphStreamingDetector:
     """`step(points, states)` as StreamingDetector's, on the fixed-shape step, for at most `slots` streams
     at once; `compile` runs it through torch.compile(fullgraph=True), one specialisation per (batch,
-    capacity) bucket."""
+    capacity) bucket; the step runs in `precision` (`model.precision`)."""
 
     def __init__(
-        self, model: PHiM, sector_voxels: int = 8192, compile: bool = False, slots: int = DEFAULT_SLOTS
+        self,
+        model: PHiM,
+        sector_voxels: int = 8192,
+        compile: bool = False,
+        slots: int = DEFAULT_SLOTS,
+        precision: Precision = Precision.FP32,
     ):
-        self.reference = StreamingDetector(model)  # folds the batchnorms; validation and initial states
+        # folds the batchnorms, checks the precision; validation and initial states
+        self.reference = StreamingDetector(model, precision=precision)
+        self.precision = precision
         self.model = self.reference.model
         self.cfg = model.cfg
         self.step_module = GraphStep(self.model, sector_voxels)
@@ -189,7 +197,8 @@ class GraphStreamingDetector:
         layout = self.step_module.host_layout(int(inputs[0].shape[0]))
         while True:
             cap = self.planner.capacity(max(int(p.shape[0]) for p in points), total)
-            host, *new = self._run(*inputs, cap)
+            with autocast(self.precision, self.device):
+                host, *new = self._run(*inputs, cap)
             cand, stats, counts = layout.split(host.cpu())  # the step's one device -> host copy
             if self.planner.fits(cap, counts.tolist(), total):
                 return cand, stats, StepStates(*new)
@@ -222,12 +231,18 @@ class GraphStreamingDetector:
 
 
 def streaming_detector(
-    model: PHiM, engine: Engine, sector_voxels: int = 8192, slots: int = DEFAULT_SLOTS
+    model: PHiM,
+    engine: Engine,
+    sector_voxels: int = 8192,
+    slots: int = DEFAULT_SLOTS,
+    precision: Precision = Precision.FP32,
 ) -> Detector:
-    """The detector that runs `model` with `engine` (a fixed-shape one with `slots` stream-state slots)."""
+    """The detector that runs `model` with `engine` in `precision` (a fixed-shape one with `slots`
+    stream-state slots)."""
     if engine is Engine.EAGER:
-        return StreamingDetector(model)
-    return GraphStreamingDetector(model, sector_voxels, compile=engine is Engine.GRAPH, slots=slots)
+        return StreamingDetector(model, precision=precision)
+    compile = engine is Engine.GRAPH
+    return GraphStreamingDetector(model, sector_voxels, compile, slots, precision)
 
 
 Detector = StreamingDetector | GraphStreamingDetector  # what the server runs

@@ -181,7 +181,7 @@ def _conv(layer: Mamba, x: Tensor, segs: Segments, conv_state: Tensor) -> tuple[
     for i in range(k - 1):
         out = torch.addcmul(out, ext.index_select(0, older[i]), weight[i])
     new_state = ext.index_select(0, new_idx.reshape(-1)).view(-1, k - 1, di)  # (S, k - 1, di)
-    return out, new_state.transpose(1, 2)
+    return out, new_state.transpose(1, 2).to(conv_state.dtype)  # keeps its dtype (float32 under autocast)
 
 
 def mamba_forward(

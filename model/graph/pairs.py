@@ -57,8 +57,9 @@ def pair_tiles(table: Tensor, in_rows: int, cap: int) -> PairTiles:
     pos = first_tile[:, None] * TILE + torch.cumsum(real, 1) - 1  # (KK, out_rows) slot of each pair
     pos = torch.where(real & (pos < dump), pos, dump).reshape(-1)  # (KK * out_rows,)
     rows = torch.arange(out_rows, device=dev).expand(kk, out_rows).reshape(-1)  # (KK * out_rows,)
-    inp = torch.full((dump + 1,), in_rows, dtype=torch.int64, device=dev).scatter(0, pos, by_offset.reshape(-1))
-    out = torch.full((dump + 1,), out_rows, dtype=torch.int64, device=dev).scatter(0, pos, rows)
+    slots = torch.full((dump + 1,), in_rows, dtype=torch.int64, device=dev)
+    inp = slots.scatter(0, pos, by_offset.reshape(-1))
+    out = torch.full_like(slots, out_rows).scatter(0, pos, rows)
     ends = torch.cumsum(tiles_per, 0)  # (KK,) tile after each offset's last
     offset = torch.searchsorted(ends, torch.arange(tiles, device=dev), right=True).clamp_max(kk - 1)
     # the dump slot got many writes (any value): cut it off

@@ -47,7 +47,7 @@ class Capacity:
     points: int  # per stream
     voxels: int  # all streams together
     coarse: tuple[tuple[int, int], ...]  # per strided (kernel, stride) of `coarse_keys`: sites after (a), (c)
-    pairs: tuple[tuple[int, int, int], ...]  # per (kernel, stride) of `table_keys`: conv pairs of (a), (b), (c)
+    pairs: tuple[tuple[int, int, int], ...]  # per (kernel, stride) of `table_keys`: conv pairs (a), (b), (c)
 
 
 def table_keys(cfg: PHiMConfig) -> tuple[tuple[int, int], ...]:
@@ -91,7 +91,7 @@ class _Down:
     sub: PairTiles  # (b) M1 -> M1
     tz: PairTiles  # (c) M1 -> coarse sites (M2)
     coarse: Sites  # (M2,) the global Mamba's tokens
-    counts: Tensor  # (5,) int64: sites after (a), (c), pairs of (a), (b), (c) there are (> capacity: overflow)
+    counts: Tensor  # (5,) int64: sites after (a), (c), pairs of (a), (b), (c) (> capacity: overflow)
     segments: Segments  # one per stream over the coarse sites
 
 

@@ -126,18 +126,20 @@ class CenterHead(nn.Module):
 
         Every branch starts with a 3x3 conv on the same input, so those six convs run as one conv with
         their weights stacked (one pass over the input instead of six; `forward_per_branch` is the twin).
+        The maps are float32 under autocast too (decoding bf16 maps would tie neighbouring heatmap peaks).
         """
         x = self.shared(bev)  # (B, shared_channels, H, W)
         entries = [_entry_conv(b) for b in self.branches()]
         bias = [c.bias if c.bias is not None else c.weight.new_zeros(c.out_channels) for c in entries]
         y = F.conv2d(x, torch.cat([c.weight for c in entries]), torch.cat(bias), padding=1)  # (B, sum, H, W)
         parts = y.split([c.out_channels for c in entries], dim=1)
-        return HeadOutput(*(_after_entry(b, p) for b, p in zip(self.branches(), parts, strict=True)))
+        maps = (_after_entry(b, p) for b, p in zip(self.branches(), parts, strict=True))
+        return HeadOutput(*(m.float() for m in maps))  # float32 maps under autocast too: decoding needs them
 
     def forward_per_branch(self, bev: Tensor) -> HeadOutput:
         """The same as `forward`, each branch on its own (the plain form, for parity tests)."""
         x = self.shared(bev)
-        return HeadOutput(*(b(x) for b in self.branches()))
+        return HeadOutput(*(b(x).float() for b in self.branches()))
 
 
 def _entry_conv(branch: nn.Sequential) -> nn.Conv2d:

@@ -160,7 +160,8 @@ class Mamba(nn.Module):
         for i in range(k - 1):  # older inputs, one gather per lag
             out = out.addcmul_(ext.index_select(0, older[i]), weight[i])
         new_state = ext.index_select(0, new_idx.reshape(-1)).view(-1, k - 1, di)  # (S, k - 1, di)
-        return out, new_state.transpose(1, 2).contiguous()  # (T, di), (S, di, k - 1)
+        # the state keeps its dtype (float32 under bf16 autocast, where x is bf16: exact)
+        return out, new_state.transpose(1, 2).to(conv_state.dtype).contiguous()  # (T, di), (S, di, k - 1)
 
     def packing(self, cu_seqlens: Tensor, total: int) -> Packing:
         return Packing.of(cu_seqlens, total, self.cfg.d_conv)

@@ -43,7 +43,23 @@ def selective_scan(
     impl: ScanImpl = ScanImpl.AUTO,
     chunk_size: int = 32,
 ) -> tuple[Tensor, Tensor]:
-    """Dispatch to the implementation `impl`; see the module docstring for the contract."""
+    """Dispatch to the implementation `impl`; see the module docstring for the contract. Autocast is off
+    inside: the recurrence runs in float32 (`scan_torch.compute_dtype`) whatever region it is called in."""
+    with torch.autocast(u.device.type, enabled=False):
+        return _dispatch(u, delta, A, B, C, cu_seqlens, h0, impl, chunk_size)
+
+
+def _dispatch(
+    u: Tensor,
+    delta: Tensor,
+    A: Tensor,
+    B: Tensor,
+    C: Tensor,
+    cu_seqlens: Tensor,
+    h0: Tensor | None,
+    impl: ScanImpl,
+    chunk_size: int,
+) -> tuple[Tensor, Tensor]:
     impl = resolve_scan(impl, u.device)
     if not scan_available(impl, u.device):
         raise RuntimeError(

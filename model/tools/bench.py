@@ -10,10 +10,11 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
-from model.config import Engine
+from model.config import Engine, Precision
 from model.detector import PHiM
 from model.graph.engine import GraphStreamingDetector, streaming_detector
 from model.ops.scan import resolve_scan
+from model.precision import autocast
 from model.sectors import split_turn
 
 
@@ -22,6 +23,7 @@ class ModelBench:
     config: str
     device: str
     engine: str  # model.config.Engine
+    precision: str  # model.config.Precision
     scan: str  # the selective-scan implementation that ran (model/ops/scan.py)
     threads: int
     batch: int  # streams per forward
@@ -44,12 +46,12 @@ def _sync(dev: torch.device) -> None:
         torch.cuda.synchronize(dev)
 
 
-def _full_turn_peak(model: PHiM, sectors: list[Tensor]) -> float | None:
+def _full_turn_peak(model: PHiM, sectors: list[Tensor], precision: Precision) -> float | None:
     dev = model.device
     if dev.type != "cuda":
         return None
     torch.cuda.reset_peak_memory_stats(dev)
-    with torch.inference_mode():
+    with torch.inference_mode(), autocast(precision, dev):
         model.forward_turn([s.to(dev) for s in sectors])
     _sync(dev)
     return torch.cuda.max_memory_allocated(dev) / 2**20
@@ -62,10 +64,12 @@ def bench_model(
     turns: int = 10,
     warmup_turns: int = 2,
     engine: Engine = Engine.EAGER,
+    precision: Precision = Precision.FP32,
 ) -> ModelBench:
-    """Stream `turn` (N, C) split into sectors, `batch` streams at once; time every step after warm-up (a
-    graph engine first learns its capacities from the turn, and compiles during the warm-up)."""
-    det = streaming_detector(model, engine)
+    """Stream `turn` (N, C) split into sectors, `batch` streams at once, in `precision`; time every step
+    after warm-up (a graph engine first learns its capacities from the turn, and compiles during the
+    warm-up)."""
+    det = streaming_detector(model, engine, precision=precision)
     dev = det.device
     cfg = model.cfg
     sectors = [s.to(dev) for s in split_turn(turn, cfg.sectors_per_turn)]
@@ -92,6 +96,7 @@ def bench_model(
         config=cfg.name,
         device=str(dev) if dev.type == "cpu" else torch.cuda.get_device_name(dev),
         engine=engine.value,
+        precision=precision.value,
         scan=resolve_scan(cfg.backbone.mamba.scan, dev).value,
         threads=torch.get_num_threads(),
         batch=batch,
@@ -103,5 +108,5 @@ def bench_model(
         mean_ms=round(statistics.fmean(all_ms), 2),
         per_sector_p50_ms=[round(statistics.median(v), 2) for v in times.values()],
         peak_mem_mb=round(peak, 1),
-        full_turn_peak_mem_mb=_full_turn_peak(model, sectors),
+        full_turn_peak_mem_mb=_full_turn_peak(model, sectors, precision),
     )

@@ -9,13 +9,14 @@ from typing import TYPE_CHECKING
 
 import click
 
-from model.config import Engine, ScanImpl, get_config
+from model.config import Engine, Precision, ScanImpl, get_config
 from model.tools.options import (
     checkpoint_option,
     config_option,
     device_option,
     engine_option,
     points_option,
+    precision_option,
     threads_option,
 )
 from phim.options import EnumValue, json_option
@@ -82,6 +83,7 @@ def info(config: str, points: Path | None, as_json: bool) -> None:
 @checkpoint_option(None)
 @click.option("--scan", type=EnumValue(ScanImpl), help="Selective scan [default: the config's].")
 @engine_option
+@precision_option
 @json_option
 def bench_model_cmd(
     config: str,
@@ -93,6 +95,7 @@ def bench_model_cmd(
     checkpoint: str | None,
     scan: ScanImpl | None,
     engine: Engine,
+    precision: Precision,
     as_json: bool,
 ) -> None:
     """Per-sector latency, sector buffer loaded: one sector at a time of a scan (fresh weights by default)."""
@@ -103,12 +106,24 @@ def bench_model_cmd(
     if scan is not None:
         model.set_scan(scan)
     turn, source = load_turn(points, fallback_kitti=True)
-    result = bench_model(model, turn, batch=batch, turns=turns, engine=engine).to_dict() | {"input": source}
+    result = bench_model(model, turn, batch=batch, turns=turns, engine=engine, precision=precision).to_dict()
+    result |= {"input": source}
     if as_json:
         click.echo(json.dumps(result))
         return
     click.echo(f"input: {source}")
-    for key in ("config", "device", "engine", "scan", "threads", "batch", "points_per_sector", "iterations"):
+    keys = (
+        "config",
+        "device",
+        "engine",
+        "precision",
+        "scan",
+        "threads",
+        "batch",
+        "points_per_sector",
+        "iterations",
+    )
+    for key in keys:
         click.echo(f"{key:>24}  {result[key]}")
     click.echo("\n| metric | value |\n|---|---|")
     for key in ("p50_ms", "p90_ms", "mean_ms", "per_sector_p50_ms", "peak_mem_mb", "full_turn_peak_mem_mb"):

@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from model.config import CONFIGS, Engine
+from model.config import CONFIGS, Engine, Precision
 from phim.options import EnumValue
 
 Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
@@ -111,4 +111,15 @@ engine_option: Decorator = click.option(
     show_default=True,
     show_envvar=True,
     help="eager (the reference), fixed (the fixed-shape step, op by op) or graph (it, compiled).",
+)
+
+
+precision_option: Decorator = click.option(
+    "--precision",
+    envvar="PHIM_PRECISION",
+    type=EnumValue(Precision),
+    default=Precision.FP32.value,
+    show_default=True,
+    show_envvar=True,
+    help="fp32, or bf16 (autocast: matmuls and convs in bfloat16; meant for CUDA, slow on CPUs without AMX).",
 )
