@@ -24,6 +24,7 @@ from model.ops.scan import scan_available, selective_scan
 from model.ops.sparse_conv_torch import gather_mm_scatter_torch
 from model.precision import autocast, check_precision
 from model.sectors import split_turn
+from model.stream import StreamingDetector, StreamState
 from server.app import build_detector
 from server.default_model import load_default_model
 from server.settings import Settings
@@ -152,13 +153,13 @@ def _turn(engine: Engine, precision: Precision, sectors: list[torch.Tensor]):
     state = det.init_state()
     for s in sectors:
         (result,), (state,) = det.step([s], [state])
-    return result.detections, state
+    return result.detections, (state if isinstance(det, StreamingDetector) else det.read_state(state))
 
 
 def _float_tensors(state) -> list[torch.Tensor]:
-    if hasattr(state, "mamba"):  # StreamState
+    if isinstance(state, StreamState):
         return [t for m in state.mamba for t in (m.conv, m.ssm)] + [b.features for b in state.buffer]
-    return [*state.conv, *state.ssm, state.feats]
+    return [*state.conv, *state.ssm, state.feats]  # GraphStreamState: a slot's tensors
 
 
 def assert_agree(fp32: Detections, bf16: Detections, min_boxes: int = 20) -> None:

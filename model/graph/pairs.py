@@ -74,6 +74,6 @@ def conv_tiles(x: Tensor, pairs: PairTiles, weight: Tensor, bias: Tensor | None)
     tiles = pairs.offset.shape[0]
     xs = ext.index_select(0, pairs.inp).view(tiles, -1, c_in)  # (tiles, TILE, C_in)
     y = torch.bmm(xs, weight.index_select(0, pairs.offset))  # (tiles, TILE, C_out)
-    out = x.new_zeros(pairs.out_rows + 1, c_out)  # + the dump row
-    out = scatter_sum(out, pairs.out, y.view(-1, c_out))[: pairs.out_rows]  # (out_rows, C_out)
+    out = x.new_zeros(pairs.out_rows + 1, c_out)  # + the dump row; sums in x's dtype (bf16 y under autocast)
+    out = scatter_sum(out, pairs.out, y.view(-1, c_out).to(out.dtype))[: pairs.out_rows]  # (out_rows, C_out)
     return out if bias is None else out + bias
