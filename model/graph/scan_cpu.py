@@ -1,70 +1,56 @@
 """The segmented selective scan as a CPU kernel (numba): the fast twin of `model.graph.mamba.segmented_scan`.
 
-The torch twin materialises (T, N, D) tensors a few times over and runs a chunk loop of small ops; here a
-thread walks the T tokens once for its range of channels, keeping their (D, N) state in cache. The
-recurrence is the twin's, token by token:
+The torch twin materialises (T, N, D) tensors a few times over and runs a chunk loop of small ops; here one
+loop walks the T tokens once, keeping the (D, N) state in cache. The recurrence is the twin's, token by
+token:
 
     h = h0[seg[t]] (zeros without h0)  where start[t]
     h = exp(delta_t * A) * h + delta_t * u_t * B_t;   y_t = C_t . h;   y_t = 0 on padding
 
-and a stream's final state is h at its last token (h0 where it has none). Channels are independent, so
-they are split over torch's thread count; the kernel releases the GIL and the threads are plain Python
-threads, not numba's pool (whose workers spin beside torch's OpenMP team and slow every op around them).
-numba rather than a C++ extension or inductor: it compiles at first use without a compiler on the machine
-and caches the result; inductor's CPU code for a sequential recurrence recomputes the chain (mamba.py).
+and a stream's final state is h at its last token (h0 where it has none). One thread: splitting the
+channels over two (plain threads; numba's own pool spins beside torch's OpenMP team and slowed every op
+around it 100x) measured the same on the 2-core machine. numba rather than a C++ extension or inductor: it
+compiles at first use without a compiler on the machine and caches the result; inductor's CPU code for a
+sequential recurrence recomputes the chain (mamba.py).
 """
 
 from __future__ import annotations
-
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
 import torch
 from torch import Tensor
 
-_pool: ThreadPoolExecutor | None = None  # helper threads; recreated in a forked child
-_pool_size = 0
-
-
-def _forget_pool() -> None:
-    global _pool, _pool_size
-    _pool, _pool_size = None, 0
-
-
-os.register_at_fork(after_in_child=_forget_pool)
-
 
 @numba.njit(cache=True, nogil=True)
-def _scan(u, dt, E, B, C, start, seg, owner, h0, y, final, d0, d1):  # pragma: no cover - compiled
-    """Channels [d0, d1) of: u, dt (T, D); E (T, D, N | 1) = exp(dt A); B, C (T, N); start (T,) bool; seg
-    (T,) int64; owner (T,) int64 stream whose last token t is (-1: none); h0 (S | 0, D, N). Writes y (T, D)
-    and final (S, D, N) there. Padding tokens are starts with dt = 0: they never reach a real token."""
-    T = u.shape[0]
+def _scan(u, dt, E, B, C, start, seg, owner, h0, y, final):  # pragma: no cover - compiled
+    """u, dt (T, D); E (T, D, N | 1) = exp(dt A); B, C (T, N); start (T,) bool; seg (T,) int64; owner (T,)
+    int64 stream whose last token t is (-1: none); h0 (S | 0, D, N). Writes y (T, D) and final (S, D, N).
+    Padding tokens are starts with dt = 0: they never reach a real token."""
+    T, D = u.shape
     N = B.shape[1]
     shared = E.shape[2] == 1
-    h = np.zeros((d1 - d0, N), dtype=y.dtype)  # (channels, N)
+    h = np.zeros((D, N), dtype=y.dtype)
     for t in range(T):
         if start[t]:
             s = seg[t]
             carried = 0 <= s < h0.shape[0]  # numba does not check bounds (padding may hold any seg)
-            for d in range(d0, d1):
+            for d in range(D):
                 for n in range(N):
-                    h[d - d0, n] = h0[s, d, n] if carried else 0.0
-        for d in range(d0, d1):
+                    h[d, n] = h0[s, d, n] if carried else 0.0
+        for d in range(D):
             x = dt[t, d] * u[t, d]
             acc = 0.0
             for n in range(N):
-                hn = E[t, d, 0 if shared else n] * h[d - d0, n] + x * B[t, n]
-                h[d - d0, n] = hn
+                hn = E[t, d, 0 if shared else n] * h[d, n] + x * B[t, n]
+                h[d, n] = hn
                 acc += C[t, n] * hn
             y[t, d] = acc
         s = owner[t]
         if 0 <= s < final.shape[0]:
-            for d in range(d0, d1):
+            for d in range(D):
                 for n in range(N):
-                    final[s, d, n] = h[d - d0, n]
+                    final[s, d, n] = h[d, n]
 
 
 def segmented_scan_cpu(
@@ -94,18 +80,5 @@ def segmented_scan_cpu(
     final = init.clone()
     arrays = (u.to(cd).contiguous(), dt, E, B.to(cd).contiguous(), C.to(cd).contiguous(), start, seg, owner)
     args = [a.contiguous().numpy() for a in arrays] + [init.numpy(), y.numpy(), final.numpy()]
-    _run_split(args, D)
+    _scan(*args)
     return torch.where(valid[:, None], y, 0.0), final if h0 is not None else None
-
-
-def _run_split(args: list[np.ndarray], channels: int) -> None:
-    """Run the kernel over `channels`, split into one range per torch thread (this thread takes the last)."""
-    global _pool, _pool_size
-    parts = max(1, min(torch.get_num_threads(), channels))
-    bounds = [channels * i // parts for i in range(parts + 1)]
-    if _pool is None or _pool_size < parts - 1:
-        _pool, _pool_size = ThreadPoolExecutor(max(1, parts - 1), thread_name_prefix="phim-scan"), parts - 1
-    futures = [_pool.submit(_scan, *args, bounds[i], bounds[i + 1]) for i in range(parts - 1)]
-    _scan(*args, bounds[-2], bounds[-1])
-    for f in futures:
-        f.result()
