@@ -90,9 +90,7 @@ def test_padding_to_a_larger_bucket_changes_nothing(model: PHiM):
 def test_sites_that_do_not_fit_run_again_never_truncated(model: PHiM):
     sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
     graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
-    p = graph.planner
-    tiny_ratios = [0.001] * (1 + 2 * p.num_keys + 3 * p.num_tables)
-    graph.planner = CapacityPlanner(p.num_keys, p.num_tables, tiny_ratios)
+    graph.planner = CapacityPlanner(graph.planner.num_keys, [0.001] * (1 + 2 * graph.planner.num_keys))
     run_both(graph, eager, [[s] for s in sectors])
     assert all(r > 0.01 for r in graph.planner.ratios)  # learned from the counts the steps reported
 

@@ -42,27 +42,22 @@ def row_bucket(n: int) -> int:
 class CapacityPlanner:
     """Predicts a step's capacities from its points; learns the ratios from the counts steps report.
 
-    `ratios`: [voxels, then (a) and (c) sites per strided key, then conv pairs (a), (b), (c) per table key]
-    per point of the batch, the largest seen so far; before any step, 1.0 (a voxel holds at least one
-    point, so that fits the voxels; the rest may not fit the first step, which then runs again).
+    `ratios`: [voxels, then (a) and (c) sites per strided key] per point of the batch, the largest seen so
+    far; before any step, 1.0 (a voxel holds at least one point, so that fits the voxels).
     """
 
-    num_keys: int  # strided (kernel, stride) keys (`step.coarse_keys`)
-    num_tables: int  # (kernel, stride) keys (`step.table_keys`)
+    num_keys: int
     ratios: list[float] = field(default_factory=list)
 
     def capacity(self, points_per_stream: int, total_points: int) -> Capacity:
-        ratios = self.ratios or [1.0] * (1 + 2 * self.num_keys + 3 * self.num_tables)
+        ratios = self.ratios or [1.0] * (1 + 2 * self.num_keys)
         rows = [row_bucket(max(1, round(r * total_points))) for r in ratios]
         coarse = tuple((rows[1 + 2 * i], rows[2 + 2 * i]) for i in range(self.num_keys))
-        p = rows[1 + 2 * self.num_keys :]
-        pairs = tuple((p[3 * i], p[3 * i + 1], p[3 * i + 2]) for i in range(self.num_tables))
-        return Capacity(row_bucket(points_per_stream), rows[0], coarse, pairs)
+        return Capacity(points=row_bucket(points_per_stream), voxels=rows[0], coarse=coarse)
 
     def fits(self, cap: Capacity, counts: list[int], total_points: int) -> bool:
-        """Learn from a step's true counts (voxels, (a), (c) per strided key, pairs per table key); False
-        if any overflowed."""
-        caps = [cap.voxels, *(c for pair in cap.coarse for c in pair), *(c for t in cap.pairs for c in t)]
+        """Learn from a step's true site counts (voxels, then (a), (c) per key); False if any overflowed."""
+        caps = [cap.voxels, *(c for pair in cap.coarse for c in pair)]
         seen = [n / max(1, total_points) for n in counts]
         self.ratios = [max(a, b) for a, b in zip(self.ratios, seen, strict=True)] if self.ratios else seen
         return all(n <= c for n, c in zip(counts, caps, strict=True))

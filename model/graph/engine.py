@@ -64,7 +64,7 @@ class GraphStreamingDetector:
         self.model = self.reference.model
         self.cfg = model.cfg
         self.step_module = GraphStep(self.model, sector_voxels)
-        self.planner = CapacityPlanner(len(self.step_module.keys), len(self.step_module.tables))
+        self.planner = CapacityPlanner(len(self.step_module.keys))
         self.engine = Engine.GRAPH if compile else Engine.FIXED
         d = self.model.backbone.cfg.d_model
         blank = from_stream_state(self.reference.init_state(), self.cfg.buffer_sectors, sector_voxels, d)

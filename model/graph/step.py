@@ -27,10 +27,9 @@ from model.geometry.sparse_tensor import BATCH, THETA
 from model.geometry.sparse_tensor import R as R_AX
 from model.graph.bev import dense_cell_table, polar_to_bev_fixed
 from model.graph.mamba import mamba_forward
-from model.graph.pairs import PairTiles, conv_tiles, pair_tiles
 from model.graph.segments import Segments, frustum_segments, stream_segments
 from model.graph.sites import Sites, scatter_sum
-from model.graph.sparse_conv import strided_sites, subm_table
+from model.graph.sparse_conv import conv_fixed, inverse_table, strided_sites, subm_table
 from model.graph.voxelize import voxelize_fixed
 from model.layers.decomposed import DecomposedDown, DecomposedUp
 from model.layers.head import peak_candidates
@@ -47,18 +46,13 @@ class Capacity:
     points: int  # per stream
     voxels: int  # all streams together
     coarse: tuple[tuple[int, int], ...]  # per strided (kernel, stride) of `coarse_keys`: sites after (a), (c)
-    pairs: tuple[tuple[int, int, int], ...]  # per (kernel, stride) of `table_keys`: conv pairs (a), (b), (c)
-
-
-def table_keys(cfg: PHiMConfig) -> tuple[tuple[int, int], ...]:
-    """The distinct (kernel, stride) pairs of the blocks, in block order (blocks sharing one share tables)."""
-    b = cfg.backbone
-    return tuple(dict.fromkeys(zip(b.down_kernels, b.down_strides, strict=True)))
 
 
 def coarse_keys(cfg: PHiMConfig) -> tuple[tuple[int, int], ...]:
     """The distinct (kernel, stride) pairs of the blocks with stride > 1, in block order."""
-    return tuple(key for key in table_keys(cfg) if key[1] > 1)
+    b = cfg.backbone
+    pairs = [(k, s) for k, s in zip(b.down_kernels, b.down_strides, strict=True) if s > 1]
+    return tuple(dict.fromkeys(pairs))
 
 
 @dataclass(frozen=True)
@@ -67,7 +61,7 @@ class HostLayout:
 
     batch: int
     top_k: int
-    counts: int  # voxels, sites (a) and (c) per coarse key, pairs (a), (b), (c) per table key
+    counts: int  # site counts: voxels, (a) and (c) per coarse key
 
     @property
     def candidate_width(self) -> int:
@@ -84,41 +78,39 @@ class HostLayout:
 
 @dataclass(frozen=True)
 class _Down:
-    """A (kernel, stride)'s conv pairs, shared by its blocks (they depend on the sites only); the up convs
-    use the down convs' pairs inverted."""
+    """A (kernel, stride)'s tables, shared by its blocks (they depend on the sites only)."""
 
-    rz: PairTiles  # (a) block input (V) -> sites after (a) (M1)
-    sub: PairTiles  # (b) M1 -> M1
-    tz: PairTiles  # (c) M1 -> coarse sites (M2)
+    rz: Tensor  # (M1, KK) rows of the block input
+    sub: Tensor  # (M1, KK) rows of the sites after (a)
+    tz: Tensor  # (M2, K * kz) rows of the sites after (a)
+    inv_tz: Tensor  # (M1, K * kz) rows of the coarse sites
+    inv_rz: Tensor  # (V, KK) rows of the sites after (a)
     coarse: Sites  # (M2,) the global Mamba's tokens
-    counts: Tensor  # (5,) int64: sites after (a), (c), pairs of (a), (b), (c) (> capacity: overflow)
+    counts: Tensor  # (2,) int64: the sites after (a) and after (c) there are (> capacity: overflow)
     segments: Segments  # one per stream over the coarse sites
 
 
-def _down_tables(
-    sites: Sites, key: tuple[int, int], kz: int, caps: tuple[int, int] | None, pairs: tuple[int, int, int]
-) -> _Down:
-    kernel, stride = key
+def _down_tables(sites: Sites, kernel: int, stride: int, kz: int, caps: tuple[int, int] | None) -> _Down:
     k2, ktz = (kernel, kernel), (kernel, kz)
-    if stride == 1:  # submanifold: the same sites throughout, (a) and (b) are one conv's pairs
+    if stride == 1:  # submanifold: the same sites throughout; an inverse table is the mirrored table
         mid = coarse = sites
-        rz = sub = pair_tiles(subm_table(sites, k2, Plane.RZ), sites.cap, pairs[0])
-        tz = pair_tiles(subm_table(sites, ktz, Plane.THETA_Z), sites.cap, pairs[2])
+        rz = sub = subm_table(sites, k2, Plane.RZ)
+        tz = subm_table(sites, ktz, Plane.THETA_Z)
+        inv_rz, inv_tz = rz.flip(1), tz.flip(1)
     else:
         assert caps is not None
-        mid, table_rz = strided_sites(sites, k2, (stride, stride), Plane.RZ, caps[0])
-        coarse, table_tz = strided_sites(mid, ktz, (stride, 1), Plane.THETA_Z, caps[1])
-        rz = pair_tiles(table_rz, sites.cap, pairs[0])
-        sub = pair_tiles(subm_table(mid, k2, Plane.RZ), mid.cap, pairs[1])
-        tz = pair_tiles(table_tz, mid.cap, pairs[2])
+        mid, rz = strided_sites(sites, k2, (stride, stride), Plane.RZ, caps[0])
+        sub = subm_table(mid, k2, Plane.RZ)
+        coarse, tz = strided_sites(mid, ktz, (stride, 1), Plane.THETA_Z, caps[1])
+        inv_tz = inverse_table(mid, coarse, ktz, (stride, 1), Plane.THETA_Z)
+        inv_rz = inverse_table(sites, mid, k2, (stride, stride), Plane.RZ)
     segs = stream_segments(coarse.coords[:, BATCH], coarse.valid, sites.batch_size)
-    counts = torch.stack([mid.count, coarse.count, rz.count, sub.count, tz.count])
-    return _Down(rz, sub, tz, coarse, counts, segs)
+    return _Down(rz, sub, tz, inv_tz, inv_rz, coarse, torch.stack([mid.count, coarse.count]), segs)
 
 
-def _conv(conv: nn.Module, x: Tensor, pairs: PairTiles) -> Tensor:
-    """A folded sparse conv (weight (KK, C_in, C_out), bias (C_out,)) + ReLU over its pairs."""
-    return torch.relu(conv_tiles(x, pairs, conv.weight, conv.bias))
+def _conv(conv: nn.Module, x: Tensor, table: Tensor) -> Tensor:
+    """A folded sparse conv (weight (KK, C_in, C_out), bias (C_out,)) + ReLU over a neighbour table."""
+    return torch.relu(conv_fixed(x, table, conv.weight, conv.bias))
 
 
 def _block(block: PHiMBlock, x: Tensor, local: tuple[Segments, Segments], t: _Down, state: MambaState):
@@ -132,8 +124,7 @@ def _block(block: PHiMBlock, x: Tensor, local: tuple[Segments, Segments], t: _Do
     g, new_state = mamba_forward(block.global_mamba, h, t.segments, state)
     assert new_state is not None
     up: DecomposedUp = block.up
-    h = _conv(up.inv_tz, block.norm_global(g), t.tz.inverse())  # (M1, C)
-    h = _conv(up.inv_rz, h, t.rz.inverse())  # (V, C)
+    h = _conv(up.inv_rz, _conv(up.inv_tz, block.norm_global(g), t.inv_tz), t.inv_rz)  # (V, C)
     return h + v_local, new_state
 
 
@@ -157,14 +148,13 @@ class GraphStep(nn.Module):
         self.cfg = model.cfg
         self.sector_voxels = sector_voxels  # S: voxel rows a stream keeps per buffered sector
         self.keys = coarse_keys(model.cfg)
-        self.tables = table_keys(model.cfg)
         self.register_buffer("cell_table", dense_cell_table(model.to_bev), persistent=False)
 
     def host_layout(self, batch: int) -> HostLayout:
         top_k = min(
             self.cfg.head.pre_nms_top_k, len(self.cfg.head.class_names) * self.cfg.bev.nx * self.cfg.bev.ny
         )
-        return HostLayout(batch, top_k, 1 + 2 * len(self.keys) + 3 * len(self.tables))
+        return HostLayout(batch, top_k, 1 + 2 * len(self.keys))
 
     def forward(
         self,
@@ -184,12 +174,11 @@ class GraphStep(nn.Module):
             sites.coords, sites.valid, cfg.grid.theta_bins, cfg.backbone.frustum_theta_bins
         )
         tables: dict[tuple[int, int], _Down] = {}
-        for key, pairs in zip(self.tables, cap.pairs, strict=True):
-            caps = cap.coarse[self.keys.index(key)] if key[1] > 1 else None
-            tables[key] = _down_tables(sites, key, cfg.backbone.tz_kernel_z, caps, pairs)
         site_counts = [sites.count]
-        site_counts += [n for key in self.keys for n in tables[key].counts[:2].unbind()]
-        site_counts += [n for key in self.tables for n in tables[key].counts[2:].unbind()]
+        for key in dict.fromkeys((b.kernel, b.stride) for b in m.backbone.blocks):
+            caps = cap.coarse[self.keys.index(key)] if key[1] > 1 else None
+            tables[key] = _down_tables(sites, key[0], key[1], cfg.backbone.tz_kernel_z, caps)
+        site_counts += [n for key in self.keys for n in tables[key].counts.unbind()]
         new_conv, new_ssm = [], []
         for block, c, s in zip(m.backbone.blocks, conv, ssm, strict=True):
             x, st = _block(block, x, local, tables[(block.kernel, block.stride)], MambaState(c, s))
