@@ -2,11 +2,13 @@
 
 - Batch: 1, 2, 4, 8, 16 or 32 streams; the padding streams have no points and their outputs are dropped.
 - Rows: a ladder of sizes 2^k and 1.5 * 2^k (a bucket wastes at most a third of its rows). Points per stream
-  come from the sectors; the voxel and coarse-site capacities are predicted from the batch's points with the
-  largest ratio (sites / points) seen so far (`CapacityPlanner`; 1.0 before the first step). The step
-  reports the true counts with its candidates; a step whose sites did not fit is run again with capacities
-  that hold them (never truncated), and the ratios grow to what was seen, so that happens rarely after the
-  first steps (a server's warm-up).
+  pad to the largest sector's bucket; the voxel and coarse-site capacities are predicted from the padded
+  batch (streams x points bucket) with the largest ratio (sites / points) seen so far (`CapacityPlanner`;
+  1.0 before the first step), so a (batch, points) bucket has one set of capacities: a compiled step is
+  specialised once per bucket, at a server's warm-up, not again while it serves. The step reports the true
+  counts with its candidates; a step whose sites did not fit is run again with capacities that hold them
+  (never truncated), and the ratios grow to what was seen (learned from the true point count), so that
+  happens rarely after the first steps.
 """
 
 from __future__ import annotations
@@ -49,9 +51,11 @@ class CapacityPlanner:
     num_keys: int
     ratios: list[float] = field(default_factory=list)
 
-    def capacity(self, points_per_stream: int, total_points: int) -> Capacity:
+    def capacity(self, points_per_stream: int, streams: int) -> Capacity:
+        """Capacities for a batch bucket of `streams` whose largest sector has `points_per_stream` points."""
         ratios = self.ratios or [1.0] * (1 + 2 * self.num_keys)
-        rows = [row_bucket(max(1, round(r * total_points))) for r in ratios]
+        padded = row_bucket(points_per_stream) * streams  # every stream full: holds any batch of this bucket
+        rows = [row_bucket(max(1, round(r * padded))) for r in ratios]
         coarse = tuple((rows[1 + 2 * i], rows[2 + 2 * i]) for i in range(self.num_keys))
         return Capacity(points=row_bucket(points_per_stream), voxels=rows[0], coarse=coarse)
 

@@ -194,9 +194,10 @@ class GraphStreamingDetector:
     def _forward(self, points: list[Tensor], inputs: list) -> tuple[Tensor, Tensor, StepStates]:
         """Run the step until its sites fit -> candidates (B, K, 10), stats (B, 3) on the host, new states."""
         total = sum(int(p.shape[0]) for p in points)
-        layout = self.step_module.host_layout(int(inputs[0].shape[0]))
+        batch = int(inputs[0].shape[0])  # the batch bucket
+        layout = self.step_module.host_layout(batch)
         while True:
-            cap = self.planner.capacity(max(int(p.shape[0]) for p in points), total)
+            cap = self.planner.capacity(max(int(p.shape[0]) for p in points), batch)
             with autocast(self.precision, self.device):
                 host, *new = self._run(*inputs, cap)
             cand, stats, counts = layout.split(host.cpu())  # the step's one device -> host copy

@@ -88,7 +88,7 @@ def count_ops(model: PHiM, turn: Tensor, engine: Engine = Engine.EAGER) -> OpRep
         for s in sectors:
             _, (state,) = det.step([s], [state])
         if isinstance(det, GraphStreamingDetector):
-            inputs, cap = det.inputs([sectors[1]], [state]), det.planner.capacity(*[sectors[1].shape[0]] * 2)
+            inputs, cap = det.inputs([sectors[1]], [state]), det.planner.capacity(sectors[1].shape[0], 1)
             step = lambda: det.step_module(*inputs, cap)  # noqa: E731
         else:
             step = lambda: det.step([sectors[1]], [state])  # noqa: E731
