@@ -58,6 +58,12 @@ class Settings(BaseSettings):
         ge=256,
         description="fixed/graph: voxels a stream buffers per sector (a sector with more fails alone: 422).",
     )
+    capacity_headroom: float = Field(
+        2.0,
+        ge=1.0,
+        description="fixed/graph: site capacities over those of the warm-up's synthetic turn (graph: a "
+        "sector that does not fit them runs op by op, logged; nothing compiles while serving).",
+    )
     precision: Literal["fp32", "bf16"] = Field(
         "fp32",
         description="The forward's precision: fp32, or bf16 (autocast: matmuls and convs in bfloat16, "
@@ -135,6 +141,7 @@ class Settings(BaseSettings):
             idle_timeout_s=self.idle_timeout_s,
             max_streams=self.max_streams,
             warmup_sectors=self.warmup_sectors,
+            capacity_headroom=self.capacity_headroom,
         )
 
     def zenoh_config(self) -> ZenohConfig:

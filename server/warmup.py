@@ -20,18 +20,19 @@ from model.sectors import split_turn
 log = logging.getLogger(__name__)
 
 
-def warm_up(det: Detector, sectors: int, max_batch: int = 1) -> float:
+def warm_up(det: Detector, sectors: int, max_batch: int = 1, headroom: float = 1.0) -> float:
     """Run `sectors` single-stream forwards on a synthetic turn (filling the sector buffer), then (eager)
     one batch of two streams; returns the mean seconds of one forward (0.1 if no forward ran). A fixed-shape
     detector first learns its capacities from the turn, runs a batch of fresh streams for every bucket up to
     `max_batch` (a compiled one compiles them here, before the worker is ready), and gives back the one
-    stream-state slot it used."""
+    stream-state slot it used; its capacities are the turn's times `headroom` (real scans have more sites
+    per point than the synthetic turn)."""
     if sectors <= 0:
         return 0.1
     turn = split_turn(torch.from_numpy(synthetic_turn(seed=0)), det.cfg.sectors_per_turn)  # list of (N_k, 4)
     graph = isinstance(det, GraphStreamingDetector)
     if graph:
-        det.calibrate(turn)
+        det.calibrate(turn, headroom)
         for b in (b for b in BATCH_BUCKETS if b <= batch_bucket(max_batch)):
             det.run_fresh([turn[i % len(turn)] for i in range(b)])
     pair = sectors >= 2 and not graph  # a fixed-shape detector ran its batch buckets above

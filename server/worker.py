@@ -47,6 +47,7 @@ class WorkerConfig:
     idle_timeout_s: float = 10.0
     max_streams: int = 256
     warmup_sectors: int = 5
+    capacity_headroom: float = 2.0  # fixed/graph: capacities over the warm-up turn's
 
 
 class Worker:
@@ -239,7 +240,9 @@ class Worker:
             self._det, self._source = self._load()
             self._states.bind(self._det)
             self.metrics.model_loaded(self.model_info())
-            self._batch_s = warm_up(self._det, self.cfg.warmup_sectors, self.cfg.max_batch)
+            self._batch_s = warm_up(
+                self._det, self.cfg.warmup_sectors, self.cfg.max_batch, self.cfg.capacity_headroom
+            )
         except Exception as e:
             log.exception("loading or warming up the model failed; the worker will never be ready")
             with self._cond:

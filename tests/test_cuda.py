@@ -161,8 +161,8 @@ def test_more_ranks_than_gpus_is_a_clear_error(monkeypatch):
 
 @pytest.mark.parametrize("compile", [False, True])
 def test_graph_step_on_cuda_equals_eager_on_cuda(models, compile):
-    """The fixed-shape step on the GPU (op by op, and through torch.compile: Triton kernels) equals the eager
-    detector there, over two turns of two streams."""
+    """The fixed-shape step on the GPU (op by op, and through torch.compile: Triton kernels, each bucket
+    replayed as a CUDA graph) equals the eager detector there, over two turns of two streams."""
     from test_graph_step import run_both
 
     from model.graph.engine import GraphStreamingDetector

@@ -95,6 +95,31 @@ def test_sites_that_do_not_fit_run_again_never_truncated(model: PHiM):
     assert all(r > 0.01 for r in graph.planner.ratios)  # learned from the counts the steps reported
 
 
+def test_frozen_capacities_run_op_by_op_when_sites_do_not_fit(model: PHiM):
+    """A compiled detector's capacities are frozen after calibration (no new graph while serving): a step
+    that does not fit them runs op by op at capacities that hold it, equal to eager, and learns nothing."""
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
+    graph, eager = GraphStreamingDetector(model, compile=True), StreamingDetector(model)
+    graph.calibrate(sectors[:1], headroom=1.5)
+    assert graph.planner.frozen
+    graph.planner.ratios = [0.001] * len(graph.planner.ratios)  # far too small for any sector
+    calls: list[str] = []
+    graph._run = lambda *a: calls.append("compiled") or graph.step_module(*a)  # stands in for the graph
+    run_both(graph, eager, [[s] for s in sectors])
+    assert graph.planner.ratios == [0.001] * len(graph.planner.ratios)
+    assert calls == ["compiled"] * len(sectors)  # each step tried its bucket once, then ran op by op
+
+
+def test_calibration_headroom_scales_the_ratios(model: PHiM):
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
+    a, b = GraphStreamingDetector(model), GraphStreamingDetector(model)
+    a.calibrate(sectors[:2])
+    b.calibrate(sectors[:2], headroom=2.0)
+    assert b.planner.ratios == [2.0 * r for r in a.planner.ratios]
+    assert not a.planner.frozen  # the op-by-op engine keeps learning: it compiles nothing
+    assert b.planner.capacity(30_000, 1).voxels > a.planner.capacity(30_000, 1).voxels
+
+
 def test_buckets():
     assert [row_bucket(n) for n in (1, 256, 257, 385, 1000, 1537)] == [256, 256, 384, 512, 1024, 2048]
 

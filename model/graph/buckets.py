@@ -45,11 +45,13 @@ class CapacityPlanner:
     """Predicts a step's capacities from its points; learns the ratios from the counts steps report.
 
     `ratios`: [voxels, then (a) and (c) sites per strided key] per point of the batch, the largest seen so
-    far; before any step, 1.0 (a voxel holds at least one point, so that fits the voxels).
+    far; before any step, 1.0 (a voxel holds at least one point, so that fits the voxels). `frozen` ratios
+    learn nothing more (a compiled detector after calibration: new capacities would compile new graphs).
     """
 
     num_keys: int
     ratios: list[float] = field(default_factory=list)
+    frozen: bool = False
 
     def capacity(self, points_per_stream: int, streams: int) -> Capacity:
         """Capacities for a batch bucket of `streams` whose largest sector has `points_per_stream` points."""
@@ -63,5 +65,15 @@ class CapacityPlanner:
         """Learn from a step's true site counts (voxels, then (a), (c) per key); False if any overflowed."""
         caps = [cap.voxels, *(c for pair in cap.coarse for c in pair)]
         seen = [n / max(1, total_points) for n in counts]
-        self.ratios = [max(a, b) for a, b in zip(self.ratios, seen, strict=True)] if self.ratios else seen
+        if not self.frozen:
+            self.ratios = [max(a, b) for a, b in zip(self.ratios, seen, strict=True)] if self.ratios else seen
         return all(n <= c for n, c in zip(counts, caps, strict=True))
+
+    @staticmethod
+    def holding(cap: Capacity, counts: list[int]) -> Capacity:
+        """`cap` grown to hold `counts` (voxels, then (a), (c) per key): for a step that did not fit."""
+        rows = [row_bucket(n) for n in counts]
+        coarse = tuple(
+            (max(a, rows[1 + 2 * i]), max(c, rows[2 + 2 * i])) for i, (a, c) in enumerate(cap.coarse)
+        )
+        return Capacity(points=cap.points, voxels=max(cap.voxels, rows[0]), coarse=coarse)

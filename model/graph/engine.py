@@ -72,7 +72,11 @@ class GraphStreamingDetector:
         if compile:
             cfg = torch._dynamo.config
             cfg.recompile_limit = max(cfg.recompile_limit, 64)  # one graph per bucket
-            self._run = torch.compile(self.step_module, fullgraph=True, dynamic=False)
+            # on CUDA each bucket's graph is captured as a CUDA graph and replayed: its outputs are
+            # overwritten by the next replay, and by then the step has copied them out (the host tensor to
+            # the host, the new states into their slots)
+            mode = "reduce-overhead" if self.device.type == "cuda" else None
+            self._run = torch.compile(self.step_module, fullgraph=True, dynamic=False, mode=mode)
         else:
             self._run = self.step_module
         log.info(
@@ -94,9 +98,11 @@ class GraphStreamingDetector:
     def sector_voxels(self) -> int:
         return self.step_module.sector_voxels
 
-    def calibrate(self, sectors: list[Tensor]) -> None:
-        """Learn the capacity ratios from sample sectors with the uncompiled step (one slot, given back), so
-        that a compiled detector compiles its serving buckets only."""
+    def calibrate(self, sectors: list[Tensor], headroom: float = 1.0) -> None:
+        """Learn the capacity ratios from sample sectors with the uncompiled step (one slot, given back),
+        times `headroom` (for data denser in sites than the samples). A compiled detector's ratios are then
+        frozen: it compiles its serving buckets at warm-up and never while it serves; a step that does not
+        fit them runs op by op at capacities that hold it (logged)."""
         run, self._run = self._run, self.step_module
         state = taken = self.init_state()
         try:
@@ -105,6 +111,8 @@ class GraphStreamingDetector:
         finally:
             self._run = run
             self.release(taken)
+        self.planner.ratios = [r * headroom for r in self.planner.ratios]
+        self.planner.frozen = self.engine is Engine.GRAPH
 
     def validate(self, points: Tensor) -> None:
         self.reference.validate(points)
@@ -196,14 +204,27 @@ class GraphStreamingDetector:
         total = sum(int(p.shape[0]) for p in points)
         batch = int(inputs[0].shape[0])  # the batch bucket
         layout = self.step_module.host_layout(batch)
+        cap, run = self.planner.capacity(max(int(p.shape[0]) for p in points), batch), self._run
         while True:
-            cap = self.planner.capacity(max(int(p.shape[0]) for p in points), batch)
             with autocast(self.precision, self.device):
-                host, *new = self._run(*inputs, cap)
+                host, *new = run(*inputs, cap)
             cand, stats, counts = layout.split(host.cpu())  # the step's one device -> host copy
             if self.planner.fits(cap, counts.tolist(), total):
                 return cand, stats, StepStates(*new)
-            log.info("graph step: sites did not fit %s (counts %s); running it again", cap, counts.tolist())
+            if self.planner.frozen:  # no new compiled bucket while serving: this step runs op by op
+                cap, run = self.planner.holding(cap, counts.tolist()), self.step_module
+                log.warning(
+                    "graph step: sites did not fit (counts %s); running it op by op with %s",
+                    counts.tolist(),
+                    cap,
+                )
+            else:
+                cap = self.planner.capacity(max(int(p.shape[0]) for p in points), batch)
+                log.info(
+                    "graph step: sites did not fit (counts %s); running it again with %s",
+                    counts.tolist(),
+                    cap,
+                )
 
     def _write_back(self, new: StepStates, slots: list[int], picks: list[int]) -> None:
         """Stream picks[k]'s new rows into slot slots[k]."""
