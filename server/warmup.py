@@ -26,7 +26,7 @@ def warm_up(det: Detector, sectors: int, max_batch: int = 1, headroom: float = 1
     detector first learns its capacities from the turn, runs a batch of fresh streams for every bucket up to
     `max_batch` (a compiled one compiles them here, before the worker is ready), and gives back the one
     stream-state slot it used; its capacities are the turn's times `headroom` (real scans have more sites
-    per point than the synthetic turn)."""
+    per point than the synthetic turn), and it is sealed: no compiling after the warm-up."""
     if sectors <= 0:
         return 0.1
     turn = split_turn(torch.from_numpy(synthetic_turn(seed=0)), det.cfg.sectors_per_turn)  # list of (N_k, 4)
@@ -46,6 +46,7 @@ def warm_up(det: Detector, sectors: int, max_batch: int = 1, headroom: float = 1
     finally:
         if isinstance(det, GraphStreamingDetector):
             det.release(taken)
+            det.seal()  # a bucket not compiled by now runs op by op: no compile while serving
     forwards = sectors + int(pair)
     mean_s = (time.monotonic() - t0) / forwards
     log.info("warm-up: %d forwards, %.1f ms each on average", forwards, mean_s * 1e3)

@@ -110,6 +110,22 @@ def test_frozen_capacities_run_op_by_op_when_sites_do_not_fit(model: PHiM):
     assert calls == ["compiled"] * len(sectors)  # each step tried its bucket once, then ran op by op
 
 
+def test_a_sealed_detector_runs_buckets_it_did_not_compile_op_by_op(model: PHiM):
+    """After `seal` (a server's warm-up) a bucket the compiled step has not run goes op by op: nothing
+    compiles on the request path. Results stay equal to eager either way."""
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
+    graph, eager = GraphStreamingDetector(model, compile=True), StreamingDetector(model)
+    graph.calibrate(sectors)
+    calls: list[int] = []
+    graph._run = lambda *a: calls.append(a[0].shape[0]) or graph.step_module(*a)  # stands in for the graph
+    graph.run_fresh(sectors[:1])  # compiles (batch 1, its capacities)
+    graph.seal()
+    run_both(graph, eager, [[s, sectors[-1 - k]] for k, s in enumerate(sectors)])  # batch 2: op by op
+    assert calls == [1]
+    run_both(graph, eager, [[s] for s in sectors])  # batch 1: compiled
+    assert calls == [1] * (1 + len(sectors))
+
+
 def test_calibration_headroom_scales_the_ratios(model: PHiM):
     sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
     a, b = GraphStreamingDetector(model), GraphStreamingDetector(model)

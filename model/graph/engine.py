@@ -22,7 +22,7 @@ from model.detector import PHiM
 from model.geometry.boxes import Detections
 from model.graph.buckets import CapacityPlanner, batch_bucket, row_bucket
 from model.graph.slots import GraphStreamState, SlotState, StateSlots, StepStates, from_stream_state
-from model.graph.step import STATS, GraphStep
+from model.graph.step import STATS, Capacity, GraphStep
 from model.layers.head import Candidates, select_detections
 from model.precision import autocast
 from model.stream import SectorResult, StreamingDetector, StreamState
@@ -69,6 +69,9 @@ class GraphStreamingDetector:
         d = self.model.backbone.cfg.d_model
         blank = from_stream_state(self.reference.init_state(), self.cfg.buffer_sectors, sector_voxels, d)
         self.slots = StateSlots(blank, slots)
+        self._sealed = False  # see seal()
+        self._compiled: set[tuple[int, Capacity]] = set()  # buckets the compiled step has run
+        self._uncompiled: set[tuple[int, Capacity]] = set()  # buckets run op by op after seal()
         if compile:
             cfg = torch._dynamo.config
             cfg.recompile_limit = max(cfg.recompile_limit, 64)  # one graph per bucket
@@ -168,6 +171,27 @@ class GraphStreamingDetector:
         return outcomes, new_states
 
     @torch.inference_mode()
+    def seal(self) -> None:
+        """No compiling from now on (a server after its warm-up): a step whose (batch, capacity) bucket was
+        not compiled yet runs op by op (`fixed`), never stalling the device loop for a compile."""
+        self._sealed = True
+
+    def _runner(self, batch: int, cap: Capacity):
+        """The compiled step for a bucket compiled before `seal`, or any bucket before it; else op by op."""
+        if self._run is self.step_module:
+            return self._run
+        if (batch, cap) in self._compiled:
+            return self._run
+        if self._sealed:
+            if (batch, cap) not in self._uncompiled:
+                self._uncompiled.add((batch, cap))
+                log.warning(
+                    "graph step: bucket (batch %d, %s) was not compiled at warm-up: op by op", batch, cap
+                )
+            return self.step_module
+        self._compiled.add((batch, cap))
+        return self._run
+
     def run_fresh(self, points: list[Tensor]) -> list[SectorOutcome]:
         """The step for len(points) fresh streams padded to their bucket, writing no slot (warm-up compiles
         a bucket with it)."""
@@ -204,7 +228,8 @@ class GraphStreamingDetector:
         total = sum(int(p.shape[0]) for p in points)
         batch = int(inputs[0].shape[0])  # the batch bucket
         layout = self.step_module.host_layout(batch)
-        cap, run = self.planner.capacity(max(int(p.shape[0]) for p in points), batch), self._run
+        cap = self.planner.capacity(max(int(p.shape[0]) for p in points), batch)
+        run = self._runner(batch, cap)
         while True:
             with autocast(self.precision, self.device):
                 host, *new = run(*inputs, cap)
@@ -220,6 +245,7 @@ class GraphStreamingDetector:
                 )
             else:
                 cap = self.planner.capacity(max(int(p.shape[0]) for p in points), batch)
+                run = self._runner(batch, cap)
                 log.info(
                     "graph step: sites did not fit (counts %s); running it again with %s",
                     counts.tolist(),
