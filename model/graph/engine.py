@@ -170,7 +170,6 @@ class GraphStreamingDetector:
         ]
         return outcomes, new_states
 
-    @torch.inference_mode()
     def seal(self) -> None:
         """No compiling from now on (a server after its warm-up): a step whose (batch, capacity) bucket was
         not compiled yet runs op by op (`fixed`), never stalling the device loop for a compile."""
@@ -192,6 +191,7 @@ class GraphStreamingDetector:
         self._compiled.add((batch, cap))
         return self._run
 
+    @torch.inference_mode()
     def run_fresh(self, points: list[Tensor]) -> list[SectorOutcome]:
         """The step for len(points) fresh streams padded to their bucket, writing no slot (warm-up compiles
         a bucket with it)."""
