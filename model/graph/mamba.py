@@ -136,9 +136,8 @@ def segmented_scan_op(
 
 @segmented_scan_op.register_kernel("cpu")
 def _(u, delta, A, B, C, start, valid, seg, last, h0, chunk_size):
-    cd = compute_dtype(u, delta, A, B, C)
-    y, final = segmented_scan_cpu(u, delta, A, B, C, start, valid, seg, last, h0, cd)
-    return y.to(u.dtype), final if final is not None else u.new_zeros(0)
+    y, final = segmented_scan_cpu(u, delta, A, B, C, Segments(start, valid, seg, last), h0)
+    return y, final if final is not None else u.new_zeros(0)
 
 
 @segmented_scan_op.register_fake

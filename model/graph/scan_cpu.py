@@ -21,6 +21,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from model.graph.segments import Segments
+from model.ops.scan_torch import compute_dtype
+
 
 @numba.njit(cache=True, nogil=True)
 def _scan(u, dt, E, B, C, start, seg, owner, h0, y, final):  # pragma: no cover - compiled
@@ -54,20 +57,12 @@ def _scan(u, dt, E, B, C, start, seg, owner, h0, y, final):  # pragma: no cover 
 
 
 def segmented_scan_cpu(
-    u: Tensor,
-    delta: Tensor,
-    A: Tensor,
-    B: Tensor,
-    C: Tensor,
-    start: Tensor,
-    valid: Tensor,
-    seg: Tensor,
-    last: Tensor,
-    h0: Tensor | None,
-    cd: torch.dtype,
+    u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, segs: Segments, h0: Tensor | None = None
 ) -> tuple[Tensor, Tensor | None]:
-    """`segmented_scan`'s contract on CPU tensors, computed in `cd` (float32 or float64) -> y (T, D) in cd
-    (zeros on padding), final states (S, D, N) in cd or None without h0."""
+    """`segmented_scan`'s contract (without chunks) on CPU tensors: y (T, D) in u's dtype, zeros on padding;
+    final states (S, D, N) in the compute dtype (float32, float64 for float64 inputs) or None without h0."""
+    cd = compute_dtype(u, delta, A, B, C)
+    start, valid, seg, last = segs.start, segs.valid, segs.seg, segs.last
     T, D = u.shape
     N = B.shape[1]
     dt = torch.where(valid[:, None], delta.to(cd), 0.0).contiguous()  # (T, D)
@@ -81,4 +76,4 @@ def segmented_scan_cpu(
     arrays = (u.to(cd).contiguous(), dt, E, B.to(cd).contiguous(), C.to(cd).contiguous(), start, seg, owner)
     args = [a.contiguous().numpy() for a in arrays] + [init.numpy(), y.numpy(), final.numpy()]
     _scan(*args)
-    return torch.where(valid[:, None], y, 0.0), final if h0 is not None else None
+    return torch.where(valid[:, None], y, 0.0).to(u.dtype), final if h0 is not None else None

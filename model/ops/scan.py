@@ -45,21 +45,6 @@ def selective_scan(
 ) -> tuple[Tensor, Tensor]:
     """Dispatch to the implementation `impl`; see the module docstring for the contract. Autocast is off
     inside: the recurrence runs in float32 (`scan_torch.compute_dtype`) whatever region it is called in."""
-    with torch.autocast(u.device.type, enabled=False):
-        return _dispatch(u, delta, A, B, C, cu_seqlens, h0, impl, chunk_size)
-
-
-def _dispatch(
-    u: Tensor,
-    delta: Tensor,
-    A: Tensor,
-    B: Tensor,
-    C: Tensor,
-    cu_seqlens: Tensor,
-    h0: Tensor | None,
-    impl: ScanImpl,
-    chunk_size: int,
-) -> tuple[Tensor, Tensor]:
     impl = resolve_scan(impl, u.device)
     if not scan_available(impl, u.device):
         raise RuntimeError(
@@ -69,11 +54,12 @@ def _dispatch(
     if impl not in _announced:
         _announced.add(impl)
         log.info("selective scan implementation: %s", impl.value)
-    if impl is ScanImpl.REFERENCE:
-        return selective_scan_ref(u, delta, A, B, C, cu_seqlens, h0)
-    if impl is ScanImpl.CHUNKED:
-        return selective_scan_chunked(u, delta, A, B, C, cu_seqlens, h0, chunk_size)
-    from model.ops.scan_triton import selective_scan_triton
+    with torch.autocast(u.device.type, enabled=False):
+        if impl is ScanImpl.REFERENCE:
+            return selective_scan_ref(u, delta, A, B, C, cu_seqlens, h0)
+        if impl is ScanImpl.CHUNKED:
+            return selective_scan_chunked(u, delta, A, B, C, cu_seqlens, h0, chunk_size)
+        from model.ops.scan_triton import selective_scan_triton
 
-    check_inputs(u, delta, A, B, C, cu_seqlens, h0)
-    return selective_scan_triton(u, delta, A, B, C, cu_seqlens, h0, chunk_size)
+        check_inputs(u, delta, A, B, C, cu_seqlens, h0)
+        return selective_scan_triton(u, delta, A, B, C, cu_seqlens, h0, chunk_size)
