@@ -4,7 +4,8 @@ Stream states live on the device in preallocated slots (`model.graph.slots.State
 handle (`SlotState`). The host pads the batch to its buckets (`model.graph.buckets`), gathers the batch's
 state rows, runs the step (compiled with torch.compile where asked), copies one flat tensor back
 (candidates, stats, site counts), re-runs the step with larger capacities if any sites did not fit, runs NMS
-on the candidates and, only then, writes the new state rows back: a failed step changes no slot. A sector
+on the candidates and, only then, writes the new state rows back: a failed step changes no slot. A compiled
+detector, once sealed after its warm-up, runs op by op whatever bucket it did not compile. A sector
 with more voxels than `sector_voxels` fails alone (`SectorRejected`): the batch's other streams get their
 results and new states, its stream keeps its state.
 """
