@@ -68,6 +68,30 @@ def test_concurrent_streams_on_the_fixed_step_equal_the_eager_model():
                 assert r.context_sectors == seq + 1
 
 
+@pytest.mark.samples
+def test_a_compiled_server_warms_up_sealed_and_equals_the_eager_model():
+    """Engine graph end to end: the warm-up compiles its bucket and seals the detector; real KITTI sectors in
+    that points bucket run compiled, thinned ones (another bucket) op by op, both equal to the eager model,
+    and nothing compiles after ready."""
+    eager = comparable_detector()
+    full, thin = kitti_sectors(0), kitti_sectors(1, every=2)
+    refs = {"full": run_direct(eager, full), "thin": run_direct(eager, thin)}
+    det = GraphStreamingDetector(eager.model, compile=True, slots=2)
+    with serve(det, wait_ready=False, max_batch=1, max_streams=2, warmup_sectors=2) as s:
+        for _ in range(600):  # a cold compile takes a minute or two on a 2-core machine
+            if httpx.get(f"{s.url}/health/ready", timeout=10).status_code == 200:
+                break
+            assert httpx.get(f"{s.url}/health/live", timeout=10).status_code == 200, "the warm-up failed"
+            time.sleep(0.5)
+        warmed = det.compiled_buckets
+        assert len(warmed) == 1 and det.sealed
+        for name, sectors in (("full", full), ("thin", thin)):
+            for seq, points in enumerate(sectors):
+                r = post(s.url, name, seq, points)
+                assert_same_boxes(r.boxes, r.scores, r.labels, refs[name][seq])
+        assert det.compiled_buckets == warmed  # the thinned sectors' bucket ran op by op
+
+
 def test_a_graph_engine_batches_at_most_the_largest_bucket():
     with pytest.raises(ValidationError, match="max_batch 64: the graph engine runs 32 at most"):
         Settings(engine="graph", max_batch=64)

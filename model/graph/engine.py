@@ -171,6 +171,15 @@ class GraphStreamingDetector:
         ]
         return outcomes, new_states
 
+    @property
+    def compiled_buckets(self) -> frozenset[tuple[int, Capacity]]:
+        """The (batch, capacity) buckets the compiled step has run (empty for an uncompiled detector)."""
+        return frozenset(self._compiled)
+
+    @property
+    def sealed(self) -> bool:
+        return self._sealed
+
     def seal(self) -> None:
         """No compiling from now on (a server after its warm-up): a step whose (batch, capacity) bucket was
         not compiled yet runs op by op (`fixed`), never stalling the device loop for a compile."""
