@@ -106,7 +106,8 @@ class GraphStreamingDetector:
         """Learn the capacity ratios from sample sectors with the uncompiled step (one slot, given back),
         times `headroom` (for data denser in sites than the samples). A compiled detector's ratios are then
         frozen: it compiles its serving buckets at warm-up and never while it serves; a step that does not
-        fit them runs op by op at capacities that hold it (logged)."""
+        fit them runs op by op at capacities that hold it (logged). Ratios learned before are forgotten."""
+        self.planner = CapacityPlanner(len(self.step_module.keys))
         run, self._run = self._run, self.step_module
         state = taken = self.init_state()
         try:
