@@ -5,6 +5,7 @@ the data. Here the table is dense: (R * THETA, D) cells per column, D = the larg
 feeds (3 in `tiny`, 4 in `paper`), -1 where a column feeds fewer. The scatter runs once per table column d
 over all rows; a row that is padding, or a missing (column, d) entry, goes to a dump cell past the map.
 Each cell is the mean of the features of the (voxel, cell) pairs landing in it, as in the eager module.
+On the CPU the step runs the same through a kernel (`polar_to_bev`, `model.graph.bev_cpu.bev_mean`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from model.graph.bev_cpu import bev_mean
 from model.graph.sites import scatter_sum
 from model.layers.polar_bev import PolarToBEV
 
@@ -47,3 +49,13 @@ def polar_to_bev_fixed(
         idx = cell[:, d]  # (B * L,)
         scatter_sum(total, idx, rows * inv.index_select(0, idx)[:, None])
     return total[:n_cells].view(b, ny, nx, c).permute(0, 3, 1, 2)  # (B, C, ny, nx)
+
+
+def polar_to_bev(
+    to_bev: PolarToBEV, table: Tensor, feats: Tensor, r: Tensor, theta: Tensor, valid: Tensor
+) -> Tensor:
+    """`polar_to_bev_fixed`, through the CPU kernel on CPU tensors."""
+    if feats.device.type != "cpu":
+        return polar_to_bev_fixed(to_bev, table, feats, r, theta, valid)
+    column = r * to_bev.grid.theta_bins + theta  # (B, L)
+    return bev_mean(feats, column, valid, table, to_bev.bev.ny, to_bev.bev.nx).permute(0, 3, 1, 2)

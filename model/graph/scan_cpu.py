@@ -1,7 +1,7 @@
 """The segmented selective scan as a CPU kernel (numba): the fast twin of `model.graph.mamba.segmented_scan`.
 
 The torch twin materialises (T, N, D) tensors a few times over and runs a chunk loop of small ops; here one
-loop walks the T tokens once, keeping the (D, N) state in cache. The recurrence is the twin's, token by
+loop walks the T tokens once, keeping the state (N, D) in cache. The recurrence is the twin's, token by
 token:
 
     h = h0[seg[t]] (zeros without h0)  where start[t]
@@ -26,34 +26,54 @@ from model.ops.scan_torch import compute_dtype
 
 
 @numba.njit(cache=True, nogil=True)
-def _scan(u, dt, E, B, C, start, seg, owner, h0, y, final):  # pragma: no cover - compiled
-    """u, dt (T, D); E (T, D, N | 1) = exp(dt A); B, C (T, N); start (T,) bool; seg (T,) int64; owner (T,)
-    int64 stream whose last token t is (-1: none); h0 (S | 0, D, N). Writes y (T, D) and final (S, D, N).
-    Padding tokens are starts with dt = 0: they never reach a real token."""
+def _scan(u, dt, E, B, C, start, valid, seg, last, h0, y, final):  # pragma: no cover - compiled
+    """u, dt (T, D); E (T, N | 1, D) = exp(dt A); B, C (T, N); start, valid (T,) bool; seg (T,) int64; last
+    (S,) int64; h0 (S | 0, D, N). Writes y (T, D) (zeros on padding) and final (S, D, N) (h0 where a stream
+    has no token). The state is kept (N, D) so that the inner loops run over the D contiguous channels."""
     T, D = u.shape
     N = B.shape[1]
-    shared = E.shape[2] == 1
-    h = np.zeros((D, N), dtype=y.dtype)
+    S = final.shape[0]
+    shared = E.shape[1] == 1
+    owner = np.full(T, -1, dtype=np.int64)  # the stream whose last token t is
+    for s in range(S):
+        if last[s] >= 0:
+            owner[last[s]] = s
+        for d in range(D):
+            for n in range(N):
+                final[s, d, n] = h0[s, d, n]
+    h = np.zeros((N, D), dtype=y.dtype)
+    x = np.empty(D, dtype=y.dtype)
+    acc = np.empty(D, dtype=y.dtype)
     for t in range(T):
+        if not valid[t]:  # padding: a segment of its own, feeds nothing
+            for d in range(D):
+                y[t, d] = 0.0
+            continue
         if start[t]:
             s = seg[t]
-            carried = 0 <= s < h0.shape[0]  # numba does not check bounds (padding may hold any seg)
-            for d in range(D):
-                for n in range(N):
-                    h[d, n] = h0[s, d, n] if carried else 0.0
-        for d in range(D):
-            x = dt[t, d] * u[t, d]
-            acc = 0.0
+            carried = 0 <= s < h0.shape[0]  # numba does not check bounds
             for n in range(N):
-                hn = E[t, d, 0 if shared else n] * h[d, n] + x * B[t, n]
-                h[d, n] = hn
-                acc += C[t, n] * hn
-            y[t, d] = acc
-        s = owner[t]
-        if 0 <= s < final.shape[0]:
+                for d in range(D):
+                    h[n, d] = h0[s, d, n] if carried else 0.0
+        for d in range(D):
+            x[d] = dt[t, d] * u[t, d]
+            acc[d] = 0.0
+        for n in range(N):
+            e = E[t, 0 if shared else n]
+            b = B[t, n]
+            c = C[t, n]
+            hn = h[n]
             for d in range(D):
-                for n in range(N):
-                    final[s, d, n] = h[d, n]
+                v = e[d] * hn[d] + x[d] * b
+                hn[d] = v
+                acc[d] += c * v
+        for d in range(D):
+            y[t, d] = acc[d]
+        s = owner[t]
+        if s >= 0:
+            for n in range(N):
+                for d in range(D):
+                    final[s, d, n] = h[n, d]
 
 
 def segmented_scan_cpu(
@@ -62,18 +82,14 @@ def segmented_scan_cpu(
     """`segmented_scan`'s contract (without chunks) on CPU tensors: y (T, D) in u's dtype, zeros on padding;
     final states (S, D, N) in the compute dtype (float32, float64 for float64 inputs) or None without h0."""
     cd = compute_dtype(u, delta, A, B, C)
-    start, valid, seg, last = segs.start, segs.valid, segs.seg, segs.last
     T, D = u.shape
     N = B.shape[1]
-    dt = torch.where(valid[:, None], delta.to(cd), 0.0).contiguous()  # (T, D)
-    E = torch.exp(dt[:, :, None] * A.to(cd)[None]).contiguous()  # (T, D, N | 1)
-    owner = torch.full((T + 1,), -1, dtype=torch.int64)  # row T: where streams without tokens point
-    if h0 is not None:  # no final states without h0
-        owner[torch.where(last >= 0, last, T)] = torch.arange(last.shape[0])
+    dt = delta.to(cd)  # (T, D)
+    E = torch.exp(dt[:, None, :] * A.to(cd).t()[None])  # (T, N | 1, D); padding rows are never read
     y = torch.empty(T, D, dtype=cd)
     init = h0.to(cd).contiguous() if h0 is not None else torch.zeros(0, D, N, dtype=cd)
-    final = init.clone()
-    arrays = (u.to(cd).contiguous(), dt, E, B.to(cd).contiguous(), C.to(cd).contiguous(), start, seg, owner)
-    args = [a.contiguous().numpy() for a in arrays] + [init.numpy(), y.numpy(), final.numpy()]
-    _scan(*args)
-    return torch.where(valid[:, None], y, 0.0).to(u.dtype), final if h0 is not None else None
+    last = segs.last if h0 is not None else segs.last[:0]  # no final states without h0
+    final = torch.empty_like(init)
+    arrays = (u.to(cd), dt, E, B.to(cd), C.to(cd), segs.start, segs.valid, segs.seg, last, init, y, final)
+    _scan(*(a.numpy() for a in arrays))
+    return y.to(u.dtype), final if h0 is not None else None

@@ -25,7 +25,7 @@ from model.detector import PHiM
 from model.geometry.rulebook import Plane
 from model.geometry.sparse_tensor import BATCH, THETA
 from model.geometry.sparse_tensor import R as R_AX
-from model.graph.bev import dense_cell_table, polar_to_bev_fixed
+from model.graph.bev import dense_cell_table, polar_to_bev
 from model.graph.mamba import mamba_forward
 from model.graph.segments import Segments, frustum_segments, stream_segments
 from model.graph.sites import Sites, scatter_sum
@@ -189,7 +189,7 @@ class GraphStep(nn.Module):
         cols = torch.cat([buf_cols, new_c[:, None]], 1)
         valid = torch.cat([buf_valid, new_v[:, None]], 1)
         b = points.shape[0]
-        bev = polar_to_bev_fixed(
+        bev = polar_to_bev(
             m.to_bev,
             self.cell_table,
             feats.view(b, -1, feats.shape[-1]),
