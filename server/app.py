@@ -77,6 +77,7 @@ def build_detector(settings: Settings) -> tuple[Detector, str]:
         settings.sector_voxels,
         settings.max_streams,
         Precision(settings.precision),
+        settings.sector_points,
     )
     log.info(
         "model: config=%s device=%s engine=%s precision=%s scan=%s weights=%s",

@@ -58,6 +58,13 @@ class Settings(BaseSettings):
         ge=256,
         description="fixed/graph: voxels a stream buffers per sector (a sector with more fails alone: 422).",
     )
+    sector_points: int = Field(
+        49152,
+        ge=0,
+        description="fixed/graph: points every sector is padded to, so sectors of any size up to it share "
+        "one capacity bucket per batch bucket (graph: compiled at warm-up; a larger sector runs op by op, "
+        "logged); 0: the bucket of each batch's largest sector.",
+    )
     capacity_headroom: float = Field(
         2.0,
         ge=1.0,

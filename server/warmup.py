@@ -85,6 +85,7 @@ def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
         "engine": det.engine.value,
         "precision": det.precision.value,
         "sector_voxels": det.sector_voxels if isinstance(det, GraphStreamingDetector) else None,
+        "sector_points": det.sector_points if isinstance(det, GraphStreamingDetector) else None,
         **slot_info(det),
         "classes": list(cfg.head.class_names),
         "sectors_per_turn": cfg.sectors_per_turn,

@@ -87,6 +87,17 @@ def test_padding_to_a_larger_bucket_changes_nothing(model: PHiM):
     run_both(graph, eager, [[s] for s in sectors])
 
 
+def test_sectors_up_to_sector_points_share_one_bucket_and_padding_changes_nothing(model: PHiM):
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=3)), model.cfg.sectors_per_turn)
+    small = [s[: 3000 * (k + 1)] for k, s in enumerate(sectors)]  # 3,000 to 12,000 points
+    graph, eager = GraphStreamingDetector(model, sector_points=12_000), StreamingDetector(model)
+    fresh = graph.init_state()
+    padded = {graph.inputs([s], [fresh])[0].shape[1] for s in small}
+    graph.release(fresh)
+    assert padded == {row_bucket(12_000)}
+    run_both(graph, eager, [[s] for s in small])
+
+
 def test_sites_that_do_not_fit_run_again_never_truncated(model: PHiM):
     sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
     graph, eager = GraphStreamingDetector(model), StreamingDetector(model)

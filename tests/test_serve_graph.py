@@ -70,14 +70,16 @@ def test_concurrent_streams_on_the_fixed_step_equal_the_eager_model():
 
 @pytest.mark.samples
 def test_a_compiled_server_warms_up_sealed_and_equals_the_eager_model():
-    """Engine graph end to end: the warm-up compiles its bucket and seals the detector; real KITTI sectors in
-    that points bucket run compiled, thinned ones (another bucket) op by op, both equal to the eager model,
-    and nothing compiles after ready."""
+    """Engine graph end to end: the warm-up compiles its bucket and seals the detector; real KITTI sectors and
+    thinned ones (half the points) alike are padded to sector_points and run compiled, a sector above it
+    (doubled points) op by op, all equal to the eager model; nothing compiles after ready."""
     eager = comparable_detector()
     full, thin = kitti_sectors(0), kitti_sectors(1, every=2)
-    refs = {"full": run_direct(eager, full), "thin": run_direct(eager, thin)}
-    det = GraphStreamingDetector(eager.model, compile=True, slots=2)
-    with serve(det, wait_ready=False, max_batch=1, max_streams=2, warmup_sectors=2) as s:
+    doubled = [np.concatenate([p, p]) for p in kitti_sectors(2)[:1]]  # same voxels, twice the points
+    sequences = {"full": full, "thin": thin, "doubled": doubled}
+    refs = {name: run_direct(eager, sectors) for name, sectors in sequences.items()}
+    det = GraphStreamingDetector(eager.model, compile=True, slots=3, sector_points=40_000)
+    with serve(det, wait_ready=False, max_batch=1, max_streams=3, warmup_sectors=2) as s:
         for _ in range(600):  # a cold compile takes a minute or two on a 2-core machine
             if httpx.get(f"{s.url}/health/ready", timeout=10).status_code == 200:
                 break
@@ -85,11 +87,15 @@ def test_a_compiled_server_warms_up_sealed_and_equals_the_eager_model():
             time.sleep(0.5)
         warmed = det.compiled_buckets
         assert len(warmed) == 1 and det.sealed
-        for name, sectors in (("full", full), ("thin", thin)):
+        assert httpx.get(f"{s.url}/v1/model", timeout=10).json()["sector_points"] == 40_000
+        for name, sectors in sequences.items():
             for seq, points in enumerate(sectors):
+                assert (len(points) > 40_000) == (name == "doubled")
                 r = post(s.url, name, seq, points)
                 assert_same_boxes(r.boxes, r.scores, r.labels, refs[name][seq])
-        assert det.compiled_buckets == warmed  # the thinned sectors' bucket ran op by op
+            ran_op_by_op = {batch for batch, _ in det.uncompiled_buckets}
+            assert ran_op_by_op == ({1} if name == "doubled" else set()), name
+        assert det.compiled_buckets == warmed
 
 
 def test_a_graph_engine_batches_at_most_the_largest_bucket():

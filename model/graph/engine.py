@@ -58,6 +58,7 @@ class GraphStreamingDetector:
         compile: bool = False,
         slots: int = DEFAULT_SLOTS,
         precision: Precision = Precision.FP32,
+        sector_points: int = 0,
     ):
         # folds the batchnorms, checks the precision; validation and initial states
         self.reference = StreamingDetector(model, precision=precision)
@@ -67,6 +68,10 @@ class GraphStreamingDetector:
         self.step_module = GraphStep(self.model, sector_voxels)
         self.planner = CapacityPlanner(len(self.step_module.keys))
         self.engine = Engine.GRAPH if compile else Engine.FIXED
+        # every sector pads to at least this many points' bucket, so that sectors of any size up to it share
+        # one capacity bucket per batch bucket (the one a server compiles at warm-up); 0: the bucket of the
+        # batch's largest sector
+        self.sector_points = sector_points
         d = self.model.backbone.cfg.d_model
         blank = from_stream_state(self.reference.init_state(), self.cfg.buffer_sectors, sector_voxels, d)
         self.slots = StateSlots(blank, slots)
@@ -183,6 +188,11 @@ class GraphStreamingDetector:
         return frozenset(self._compiled)
 
     @property
+    def uncompiled_buckets(self) -> frozenset[tuple[int, Capacity]]:
+        """The buckets a sealed compiled detector ran op by op because they were not compiled at warm-up."""
+        return frozenset(self._uncompiled)
+
+    @property
     def sealed(self) -> bool:
         return self._sealed
 
@@ -222,7 +232,7 @@ class GraphStreamingDetector:
         len(states); the padding streams read the blank row)."""
         b = len(states) if batch is None else batch
         width = max(int(p.shape[1]) for p in points)
-        rows = row_bucket(max(int(p.shape[0]) for p in points))
+        rows = row_bucket(self._points(points))
         padded = torch.zeros(b, rows, width)  # (B, Np, C)
         for i, p in enumerate(points):
             padded[i, : p.shape[0], : p.shape[1]] = p
@@ -244,7 +254,7 @@ class GraphStreamingDetector:
         total = sum(int(p.shape[0]) for p in points)
         batch = int(inputs[0].shape[0])  # the batch bucket
         layout = self.step_module.host_layout(batch)
-        cap = self.planner.capacity(max(int(p.shape[0]) for p in points), batch)
+        cap = self.planner.capacity(self._points(points), batch)
         run = self._runner(batch, cap)
         while True:
             with autocast(self.precision, self.device):
@@ -260,13 +270,17 @@ class GraphStreamingDetector:
                     cap,
                 )
             else:
-                cap = self.planner.capacity(max(int(p.shape[0]) for p in points), batch)
+                cap = self.planner.capacity(self._points(points), batch)
                 run = self._runner(batch, cap)
                 log.info(
                     "graph step: sites did not fit (counts %s); running it again with %s",
                     counts.tolist(),
                     cap,
                 )
+
+    def _points(self, points: list[Tensor]) -> int:
+        """The points per stream a batch is planned for: its largest sector's, at least `sector_points`."""
+        return max(self.sector_points, *(int(p.shape[0]) for p in points))
 
     def _write_back(self, new: StepStates, slots: list[int], picks: list[int]) -> None:
         """Stream picks[k]'s new rows into slot slots[k]."""
@@ -300,13 +314,14 @@ def streaming_detector(
     sector_voxels: int = 8192,
     slots: int = DEFAULT_SLOTS,
     precision: Precision = Precision.FP32,
+    sector_points: int = 0,
 ) -> Detector:
     """The detector that runs `model` with `engine` in `precision` (a fixed-shape one with `slots`
-    stream-state slots)."""
+    stream-state slots, planned for sectors of at least `sector_points` points)."""
     if engine is Engine.EAGER:
         return StreamingDetector(model, precision=precision)
     compile = engine is Engine.GRAPH
-    return GraphStreamingDetector(model, sector_voxels, compile, slots, precision)
+    return GraphStreamingDetector(model, sector_voxels, compile, slots, precision, sector_points)
 
 
 Detector = StreamingDetector | GraphStreamingDetector  # what the server runs
