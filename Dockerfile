@@ -45,5 +45,7 @@ HEALTHCHECK --interval=10s --timeout=5s --start-period=120s --retries=3 \
     CMD ["python", "-m", "server.healthcheck"]
 
 # SIGTERM (docker stop): stop taking sectors, answer those in flight, exit 0. Give it time: docker stop -t 30.
+# Binding 0.0.0.0 needs a token file (PHIM_AUTH_TOKENS, mounted; `phim auth add-token`) or PHIM_INSECURE=1:
+# without either the server refuses to start (docs/security.md).
 STOPSIGNAL SIGTERM
 CMD ["phim", "serve", "--host", "0.0.0.0"]

@@ -132,6 +132,12 @@ def _data(data: Path | None, synthetic: bool) -> Path | None:
 @click.option("--plots", type=Folder, help="Write PNG plots into this folder.")
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Live progress on stderr.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Vehicle start offsets and scan choice.")
+@click.option(
+    "--stream-prefix",
+    default="loadtest",
+    show_default=True,
+    help="Stream IDs are PREFIX-<step>-<vehicle> (a --token covers the streams its prefix starts).",
+)
 def loadtest(
     vehicles: int,
     sweep: str | None,
@@ -179,6 +185,7 @@ def _loadtest_config(
     sectors_per_turn: int | None,
     drain_timeout: float,
     seed: int,
+    stream_prefix: str,
     **connection: Any,
 ) -> LoadTestConfig:
     """The loadtest options -> a LoadTestConfig. Thresholds: those given, enforced; none given: the
@@ -200,6 +207,7 @@ def _loadtest_config(
         drain_timeout_s=drain_timeout,
         stop_after_failure=stop_after_failure,
         seed=seed,
+        stream_prefix=stream_prefix,
     )
 
 

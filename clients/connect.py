@@ -27,6 +27,7 @@ class ConnectConfig:
     key_prefix: str = DEFAULT_KEY_PREFIX
     timeout_s: float = 10.0
     use_http_control: bool = True  # over zenoh, reach model info / end stream at `url`
+    token: str | None = None  # bearer token for HTTP (`phim serve --auth-tokens`)
 
 
 def make_client(cfg: ConnectConfig, max_connections: int | None = 256) -> DetectorClient:
@@ -36,7 +37,9 @@ def make_client(cfg: ConnectConfig, max_connections: int | None = 256) -> Detect
 
     if cfg.transport is Transport.HTTP:
         return HttpClient(
-            config=HttpConfig(url=cfg.url, timeout_s=cfg.timeout_s, max_connections=max_connections)
+            config=HttpConfig(
+                url=cfg.url, timeout_s=cfg.timeout_s, max_connections=max_connections, token=cfg.token
+            )
         )
     return ZenohClient(
         ZenohClientConfig(
@@ -46,5 +49,6 @@ def make_client(cfg: ConnectConfig, max_connections: int | None = 256) -> Detect
             timeout_s=cfg.timeout_s,
             config_file=cfg.zenoh_config_file,
             http_url=cfg.url if cfg.use_http_control else None,
+            token=cfg.token,
         )
     )

@@ -45,6 +45,7 @@ class HttpConfig:
     timeout_s: float = 10.0  # each send and receive, and waiting for a pooled connection
     connect_timeout_s: float = 5.0
     max_connections: int | None = 256  # open connections, idle or busy, per path (sync, async); None: any
+    token: str | None = None  # a bearer token (`phim serve --auth-tokens`), sent on every request
 
 
 class HttpClient(DetectorClient):
@@ -60,7 +61,10 @@ class HttpClient(DetectorClient):
         self._limits = httpx.Limits(
             max_connections=cfg.max_connections, max_keepalive_connections=cfg.max_connections
         )
-        self._sync = httpx.Client(base_url=cfg.url, timeout=self._timeout, limits=self._limits)
+        self._headers = {"Authorization": f"Bearer {cfg.token}"} if cfg.token else {}
+        self._sync = httpx.Client(
+            base_url=cfg.url, timeout=self._timeout, limits=self._limits, headers=self._headers
+        )
         self._async: httpx.AsyncClient | None = None
         self._closed = False
 
@@ -122,7 +126,7 @@ class HttpClient(DetectorClient):
             raise TransportError("the client is closed")
         if self._async is None:
             self._async = httpx.AsyncClient(
-                base_url=self.config.url, timeout=self._timeout, limits=self._limits
+                base_url=self.config.url, timeout=self._timeout, limits=self._limits, headers=self._headers
             )
         return self._async
 

@@ -62,6 +62,12 @@ CONNECTION: list[Decorator] = [
         help="A zenoh JSON5 config file (TLS, ...).",
     ),
     click.option(
+        "--token",
+        envvar="PHIM_TOKEN",
+        show_envvar=True,
+        help="A bearer token for a server run with --auth-tokens (phim auth add-token).",
+    ),
+    click.option(
         "--timeout",
         envvar="PHIM_TIMEOUT_S",
         type=click.FloatRange(0.001),
@@ -74,7 +80,8 @@ CONNECTION: list[Decorator] = [
 
 
 def connection_options(command: Callable[..., Any]) -> Callable[..., Any]:
-    """--transport, --url, --zenoh-connect, --zenoh-mode, --zenoh-config, --timeout: see `connect_config`."""
+    """--transport, --url, --zenoh-connect, --zenoh-mode, --zenoh-config, --token, --timeout: see
+    `connect_config`."""
     for option in reversed(CONNECTION):
         command = option(command)
     return command
@@ -86,6 +93,7 @@ def connect_config(
     zenoh_connect: str,
     zenoh_mode: str,
     zenoh_config: Path | None,
+    token: str | None,
     timeout: float,
 ) -> ConnectConfig:
     """The connection options -> a ConnectConfig."""
@@ -96,4 +104,5 @@ def connect_config(
         zenoh_mode=zenoh_mode,
         zenoh_config_file=None if zenoh_config is None else str(zenoh_config),
         timeout_s=timeout,
+        token=token or None,
     )

@@ -56,6 +56,8 @@ HTTP_STATUS: dict[ErrorCode, int] = {
     ErrorCode.INVALID_FIELD: 422,
     ErrorCode.STALE_SEQUENCE: 409,
     ErrorCode.UNKNOWN_STREAM: 404,
+    ErrorCode.UNAUTHORIZED: 401,
+    ErrorCode.FORBIDDEN: 403,
     ErrorCode.OVERLOADED: 503,
     ErrorCode.NOT_READY: 503,
     ErrorCode.DEADLINE_EXCEEDED: 504,

@@ -28,6 +28,8 @@ class ErrorCode(enum.StrEnum):
     INVALID_FIELD = "invalid_field"  # a field has a wrong type/value     HTTP 422
     STALE_SEQUENCE = "stale_sequence"  # seq <= last seq of the stream    HTTP 409
     UNKNOWN_STREAM = "unknown_stream"  #                                  HTTP 404
+    UNAUTHORIZED = "unauthorized"  # no or unknown bearer token            HTTP 401
+    FORBIDDEN = "forbidden"  # the token's prefix does not cover the stream HTTP 403
     OVERLOADED = "overloaded"  # queue full / stream table full           HTTP 503 + Retry-After
     NOT_READY = "not_ready"  # warming up / shutting down                 HTTP 503
     DEADLINE_EXCEEDED = "deadline_exceeded"  # waited past its deadline   HTTP 504

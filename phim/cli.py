@@ -40,6 +40,10 @@ COMMANDS: dict[str, Entry | Group] = {
     "train": Entry("model.train.cli:train_cmd", "Train a model (streaming, as the paper trains)."),
     "eval": Entry("model.eval.cli:eval_cmd", "Waymo-style AP/APH per class and level, per buffer fill."),
     "diagnose": Entry("model.eval.cli:diagnose_cmd", "Each part of the predicted boxes against the truth."),
+    "auth": Group(
+        "Access tokens of `phim serve --auth-tokens` (docs/security.md).",
+        {"add-token": Entry("server.auth_cli:add_token_cmd", "Make a token for a stream-ID prefix.")},
+    ),
     "model": Group(
         "Inspect model configs.",
         {"info": Entry("model.tools.cli:info", "Parameter count and measured GFLOPs of a config.")},

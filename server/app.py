@@ -39,6 +39,7 @@ from model.checkpoint import load_checkpoint
 from model.config import Engine, Precision, get_config
 from model.device import pick_device
 from model.graph.engine import Detector, streaming_detector
+from server.auth import Grant, TokenFile
 from server.default_model import init_model, load_default_model
 from server.metrics import Metrics
 from server.settings import Settings
@@ -58,6 +59,7 @@ class Services:
     worker: Worker
     metrics: Metrics
     limits: Limits
+    tokens: TokenFile | None  # None: no authentication (docs/security.md)
 
 
 def build_detector(settings: Settings) -> tuple[Detector, str]:
@@ -118,6 +120,7 @@ def create_app(
     settings: Settings, detector: Detector | None = None, model_source: str = "given detector"
 ) -> FastAPI:
     """The app; `detector` (already built) skips loading the model the settings name (tests share one)."""
+    tokens = TokenFile(settings.auth_tokens) if settings.auth_tokens is not None else None
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -131,7 +134,7 @@ def create_app(
         try:
             if settings.zenoh_enabled:
                 zenoh = await asyncio.to_thread(start_zenoh, settings, worker)
-            app.state.services = Services(settings, worker, metrics, settings.limits())
+            app.state.services = Services(settings, worker, metrics, settings.limits(), tokens)
             yield
         finally:
             log.info("shutting down: draining (up to %.1f s)", settings.drain_timeout_s)
@@ -166,6 +169,8 @@ def error_response(
 ) -> Response:
     reply = ErrorReply.from_error(e, stream_id, seq)
     headers = {}
+    if e.code is ErrorCode.UNAUTHORIZED:
+        headers["WWW-Authenticate"] = 'Bearer realm="phim"'
     if e.retry_after_s is not None:
         headers["Retry-After"] = str(max(1, math.ceil(e.retry_after_s)))
     media_type = JSON if as_json else MSGPACK
@@ -174,7 +179,34 @@ def error_response(
 
 
 async def _service_error_handler(request: Request, e: ServiceError) -> Response:
-    return error_response(e, wants_json(request, default=True), request.path_params.get("stream_id"))
+    stream_id = None if e.code in AUTH_ERRORS else request.path_params.get("stream_id")
+    return error_response(e, wants_json(request, default=True), stream_id)
+
+
+AUTH_ERRORS = (ErrorCode.UNAUTHORIZED, ErrorCode.FORBIDDEN)  # their replies name no stream
+
+
+def authorize(request: Request, stream_id: str | None = None) -> Grant | None:
+    """The request's grant (None when authentication is off); checked before anything else a route does.
+    ServiceError UNAUTHORIZED without a known bearer token, FORBIDDEN for a stream outside its prefix."""
+    tokens = _services(request).tokens
+    if tokens is None:
+        return None
+    scheme, _, token = request.headers.get("authorization", "").partition(" ")
+    if scheme.lower() != "bearer" or not token.strip():
+        raise ServiceError(
+            ErrorCode.UNAUTHORIZED, "Authorization: missing; expected 'Bearer <token>'", "Authorization"
+        )
+    grant = tokens.grant(token.strip())
+    if grant is None:
+        raise ServiceError(ErrorCode.UNAUTHORIZED, "Authorization: unknown token", "Authorization")
+    if stream_id is not None and not grant.allows(stream_id):
+        raise ServiceError(
+            ErrorCode.FORBIDDEN,
+            f"stream_id: this token may use the streams whose ID starts with {grant.prefix!r}",
+            "stream_id",
+        )
+    return grant
 
 
 def _content_type(request: Request) -> str:
@@ -222,6 +254,11 @@ async def post_sector(request: Request) -> Response:
     ctype = _content_type(request)
     reply_type = JSON if wants_json(request, default=ctype == JSON) else MSGPACK
     try:
+        authorize(request, stream_id)
+    except ServiceError as e:
+        svc.metrics.count("http", e.code.value)
+        return error_response(e, reply_type == JSON)
+    try:
         _check_content_type(ctype)
         body = await read_body(request, svc.limits.max_body_bytes)
         msg = decode_sector(body, svc.limits, stream_id, media_type=ctype)
@@ -236,21 +273,27 @@ async def post_sector(request: Request) -> Response:
 
 
 async def delete_stream(stream_id: str, request: Request) -> dict[str, Any]:
+    authorize(request, stream_id)
     _services(request).worker.end_stream(check_stream_id(stream_id))
     return {"stream_id": stream_id, "ended": True}
 
 
 async def list_streams(request: Request) -> dict[str, Any]:
+    grant = authorize(request)
     svc = _services(request)
     streams = svc.worker.streams()
+    if grant is not None and not grant.admin:  # a stream token sees its own namespace only
+        streams = [s for s in streams if grant.allows(s["stream_id"])]
     return {"streams": streams, "live": len(streams), "max_streams": svc.settings.max_streams}
 
 
 async def get_stream(stream_id: str, request: Request) -> dict[str, Any]:
+    authorize(request, stream_id)
     return _services(request).worker.stream(check_stream_id(stream_id))
 
 
 async def get_model(request: Request) -> dict[str, Any]:
+    authorize(request)
     return _services(request).worker.model_info()
 
 
@@ -269,6 +312,8 @@ async def ready(request: Request) -> Response:
 
 
 async def metrics(request: Request) -> Response:
+    if not _services(request).settings.public_metrics:
+        authorize(request)
     m = _services(request).metrics
     return Response(m.exposition(), media_type=m.content_type)
 

@@ -6,6 +6,7 @@ imports pydantic and the contract only, so `phim serve --help` answers without t
 
 from __future__ import annotations
 
+import ipaddress
 import os
 import socket
 from pathlib import Path
@@ -15,6 +16,7 @@ from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from contract import DEFAULT_HTTP_PORT, DEFAULT_ZENOH_ENDPOINT, Limits
+from server.auth import TokenFile
 
 MAX_GRAPH_BATCH = 32  # the largest batch bucket of the fixed-shape step (model/graph/buckets.py)
 
@@ -23,6 +25,16 @@ if TYPE_CHECKING:
     from server.zenoh_transport import ZenohConfig
 
 Endpoints = Annotated[tuple[str, ...], NoDecode]
+
+
+def is_loopback(host: str) -> bool:
+    """Whether an HTTP bind address is reachable from this machine only."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: it may resolve to anything
+        return False
 
 
 def default_worker_id() -> str:
@@ -112,6 +124,18 @@ class Settings(BaseSettings):
         description="Logs on stderr: text lines, or JSON lines (time, level, logger, message, exception).",
     )
     access_log: bool = Field(False, description="uvicorn's access log: a line per HTTP request.")
+    # access (docs/security.md)
+    auth_tokens: Path | None = Field(
+        None,
+        description="A token file (phim auth add-token): every HTTP route but /health needs a bearer token, "
+        "a stream's routes one whose prefix its ID starts with (or an admin one); re-read when it changes.",
+    )
+    public_metrics: bool = Field(False, description="With --auth-tokens: /metrics answers without a token.")
+    insecure: bool = Field(
+        False,
+        description="Allow an HTTP host beyond loopback without --auth-tokens (anyone reaching it "
+        "may drive, read and end every stream).",
+    )
 
     @model_validator(mode="after")
     def _batch_fits_the_buckets(self) -> Settings:
@@ -120,6 +144,23 @@ class Settings(BaseSettings):
                 f"max_batch {self.max_batch}: the {self.engine} engine runs {MAX_GRAPH_BATCH} at most"
             )
         return self
+
+    @model_validator(mode="after")
+    def _open_only_on_loopback(self) -> Settings:
+        if self.auth_tokens is None and not self.insecure and not is_loopback(self.host):
+            raise ValueError(
+                f"host {self.host}: beyond loopback without --auth-tokens anyone who reaches the port may "
+                "send to, read and end every stream; give --auth-tokens FILE (phim auth add-token), or "
+                "--insecure (PHIM_INSECURE=1) to accept that"
+            )
+        return self
+
+    @field_validator("auth_tokens")
+    @classmethod
+    def _readable_tokens(cls, value: Path | None) -> Path | None:
+        if value is not None:
+            TokenFile(value)  # TokenFileError (a ValueError) names the file and line
+        return value
 
     @field_validator("zenoh_listen", "zenoh_connect", mode="before")
     @classmethod

@@ -79,6 +79,16 @@ def test_dockerfile_essentials():
     cmd = json.loads(dict(ins)["CMD"])  # exec form (a JSON array), so SIGTERM reaches phim directly
     assert cmd == ["phim", "serve", "--host", "0.0.0.0"]
     assert image_env()["PHIM_CHECKPOINT"].startswith("/opt/phim/weights/")
+    assert "PHIM_INSECURE" not in image_env() and "PHIM_AUTH_TOKENS" not in image_env()  # the operator says
+
+
+def test_the_image_command_refuses_to_serve_all_interfaces_without_tokens():
+    cmd = json.loads(dict(instructions())["CMD"])
+    env = {**os.environ, **image_env()}
+    env.pop("PHIM_INSECURE", None)
+    r = subprocess.run([str(BIN / cmd[0]), *cmd[1:]], env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert "host 0.0.0.0: beyond loopback without --auth-tokens" in r.stderr and "PHIM_INSECURE=1" in r.stderr
 
 
 def test_compose_essentials():
@@ -90,6 +100,9 @@ def test_compose_essentials():
     devices = server["deploy"]["resources"]["reservations"]["devices"]
     assert devices[0]["driver"] == "nvidia" and "gpu" in devices[0]["capabilities"]
     assert server["build"]["dockerfile"] == "Dockerfile" and "zenoh-router" in server["depends_on"]
+    published = [p for service in (router, server) for p in service["ports"]]
+    assert published and all(p.startswith("127.0.0.1:") for p in published)  # nothing on all interfaces
+    assert env["PHIM_INSECURE"] == "1" and not any(p.endswith(":8000") for p in published)
 
 
 def test_image_commands_serve_a_sector_and_stop_cleanly(tmp_path: Path):
