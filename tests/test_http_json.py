@@ -51,7 +51,7 @@ def test_openapi_publishes_the_sector_route(doc):
     op = doc["paths"][PATH]["post"]
     assert set(op["requestBody"]["content"]) == {MSGPACK, JSON}
     assert set(op["responses"]["200"]["content"]) == {MSGPACK, JSON}
-    assert {int(s) for s in op["responses"]} == {200, 400, 404, 409, 413, 422, 500, 503, 504}
+    assert {int(s) for s in op["responses"]} == {200, 400, 401, 403, 404, 409, 413, 422, 500, 503, 504}
     assert {int(s) for s in op["responses"]} - {200} == set(HTTP_STATUS.values())
     for status in HTTP_STATUS.values():
         for media in (MSGPACK, JSON):
