@@ -131,6 +131,12 @@ class ErrorReply:
 
     @staticmethod
     def from_error(e: ServiceError, stream_id: str | None = None, seq: int | None = None) -> ErrorReply:
+        """The reply to `e`; `stream_id` is echoed only when it is a stream ID (an oversized or malformed one
+        from a path or key would make the reply itself unreadable, and no stream owns it)."""
+        if stream_id is not None and not (
+            len(stream_id) <= Limits.max_string_len and STREAM_ID_RE.fullmatch(stream_id)
+        ):
+            stream_id = None
         return ErrorReply(e.code, e.message, e.field, stream_id, seq, e.retry_after_s)
 
 

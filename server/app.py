@@ -16,6 +16,7 @@ from typing import Any, Protocol
 import msgspec
 from fastapi import FastAPI, Request, Response
 from fastapi.responses import JSONResponse
+from starlette.requests import ClientDisconnect
 
 from contract import (
     HTTP_STATUS,
@@ -265,6 +266,9 @@ async def post_sector(request: Request) -> Response:
     except ServiceError as e:
         svc.metrics.count("http", e.code.value)
         return error_response(e, reply_type == JSON, stream_id)
+    except ClientDisconnect:  # gone before its body arrived: nothing was submitted, nobody to answer
+        log.debug("http: a client left while sending a sector for %r", stream_id[:64])
+        return Response(status_code=400)
     try:
         reply = await asyncio.wrap_future(svc.worker.submit(msg, transport="http"))
     except ServiceError as e:

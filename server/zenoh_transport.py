@@ -274,6 +274,11 @@ class ZenohTransport:
             finally:
                 job.query.drop()  # finalize: the querier's get completes now
             return
+        if job.stream_id is None:
+            # a put on a key that names no stream (a wildcard, a bad ID): an error published on its key would
+            # reach every subscriber the key matches, every vehicle's for `*`. Dropped (counted as rejected)
+            log.debug("zenoh: no answer published for a put on %r: not a stream ID", job.key_id[:64])
+            return
         assert self._session is not None  # the session outlives the replier thread
         key = self.keys.detections(job.key_id) if ok else self.keys.errors(job.key_id)
         self._session.put(

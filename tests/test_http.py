@@ -287,3 +287,37 @@ def test_shutdown_answers_everything_in_flight(det, monkeypatch, scan):
             assert [detections(f.result()).seq for f in futs] == [0, 0, 0]
             stopper.join(60)
         assert not s.thread.is_alive()
+
+
+def test_an_oversized_or_malformed_stream_id_is_not_echoed(server):
+    """A 10 KB (or malformed) stream ID in the path names no stream: the error says what is wrong without
+    echoing it, so the reply stays small and readable with the default limits."""
+    for sid in ("a" * 10_000, "bad:id"):
+        r = post(server.url, sid, 0, np.zeros((0, 4), np.float32), body=msgpack.packb({}))
+        out = decode_response(r.content)
+        assert isinstance(out, ErrorReply) and out.stream_id is None and len(r.content) < 1000, out
+        r = httpx.get(f"{server.url}/v1/streams/{sid}", timeout=10)
+        out = decode_response(r.content, media_type="application/json")
+        assert r.status_code in (413, 422) and out.stream_id is None and len(r.content) < 1000, out
+    ok = post(server.url, "fine-id", 0, np.zeros((0, 4), np.float32), body=msgpack.packb({}))
+    assert decode_response(ok.content).stream_id == "fine-id"  # a valid ID is still echoed
+
+
+def test_a_client_leaving_mid_body_is_no_error(server, caplog: pytest.LogCaptureFixture):
+    """A client that closes its connection halfway through a body: no ERROR log (a traceback), nothing
+    counted as answered, and the server goes on serving."""
+    import socket
+
+    host, port = server.url.removeprefix("http://").split(":")
+    with caplog.at_level("DEBUG"):
+        for _ in range(3):
+            with socket.create_connection((host, int(port)), timeout=10) as sock:
+                head = (
+                    "POST /v1/streams/leaver/sectors HTTP/1.1\r\nHost: x\r\nContent-Type: application/msgpack"
+                )
+                sock.sendall(f"{head}\r\nContent-Length: 100000\r\n\r\n".encode() + b"\0" * 1000)
+                time.sleep(0.2)  # the server is reading the body when the client goes
+        time.sleep(0.5)
+        assert httpx.get(f"{server.url}/health/live", timeout=10).status_code == 200
+    errors = [r for r in caplog.records if r.levelno >= 40]
+    assert not errors, [r.getMessage() for r in errors]

@@ -384,3 +384,17 @@ def test_app_serves_zenoh_like_http(det: StreamingDetector, scan_a: list[np.ndar
         is_error(ask(c, "via-zenoh", b"\xc1garbage"), ErrorCode.BAD_REQUEST, "body")
         metrics = httpx.get(f"{server.url}/metrics", timeout=GET_TIMEOUT_S).text
         assert 'phim_sectors_total{outcome="bad_request",transport="zenoh"} 1.0' in metrics
+
+
+def test_a_put_on_a_wildcard_key_publishes_nothing_to_every_stream(served: Served) -> None:
+    """A put on `.../streams/*/sectors` names no stream: its error would be published on `.../*/errors`,
+    which every vehicle's error subscription matches (amplification). It is dropped; a put on a real
+    stream's key still gets its error there (the control: the subscriber works)."""
+    c = served.client
+    with c.declare_subscriber(KEYS.errors("*"), zenoh.handlers.FifoChannel(16)) as errs:
+        for stream in ("*", "**", "bad id", "car-9"):  # car-9 last: the replier answers in order
+            c.put(KEYS.sectors(stream), b"garbage", congestion_control=BLOCK)
+        got = receive(errs, 1)
+        time.sleep(0.3)
+        assert errs.try_recv() is None
+    is_error(decode_response(got[0].payload.to_bytes()), ErrorCode.BAD_REQUEST, "body", "car-9")
