@@ -118,6 +118,7 @@ class DetectionsReply:
     context_sectors: int  # sectors the prediction saw (the new one plus the buffered ones)
     gap: int  # sectors missed since the stream's last processed seq
     timings: Timings
+    cold_start: bool = False  # ran on a fresh state (first on this worker, or reset): no earlier context
 
 
 @dataclass(frozen=True)
@@ -330,6 +331,7 @@ def _reply_keys(r: DetectionsReply) -> dict[str, Any]:  # the keys a reply has i
         context_sectors=r.context_sectors,
         gap=r.gap,
         timings=WireTimings(r.timings.queue_ms, r.timings.model_ms, r.timings.total_ms),
+        cold_start=r.cold_start,
     )
 
 
@@ -399,6 +401,7 @@ def decode_response(
         context_sectors=reply.context_sectors,
         gap=reply.gap,
         timings=Timings(reply.timings.queue_ms, reply.timings.model_ms, reply.timings.total_ms),
+        cold_start=reply.cold_start,
     )
 
 

@@ -42,6 +42,13 @@ StreamId = Annotated[str, Meta(pattern=STREAM_ID_PATTERN, description="at most m
 Bytes = Annotated[memoryview, Meta(description="raw little-endian C-order bytes: msgpack bin; JSON base64")]
 ContextSectors = Annotated[Count, Meta(description="sectors the prediction saw (new and buffered)")]
 Gap = Annotated[Count, Meta(description="sectors missed since the stream's last processed seq")]
+ColdStart = Annotated[
+    bool,
+    Meta(
+        description="the sector ran on a fresh stream state: the stream's first on this worker (new, or "
+        "after it was ended, evicted or lost in a restart), or a reset; no earlier context"
+    ),
+]
 BOXES = "x, y, z (box centre), l, w, h (metres), yaw (radians), sensor frame"
 
 
@@ -96,6 +103,7 @@ class WireDetections(Struct, tag_field="kind", tag="detections"):
     context_sectors: ContextSectors
     gap: Gap
     timings: WireTimings
+    cold_start: ColdStart = False
 
 
 class JsonDetections(Struct, tag_field="kind", tag="detections"):
@@ -110,6 +118,7 @@ class JsonDetections(Struct, tag_field="kind", tag="detections"):
     context_sectors: ContextSectors
     gap: Gap
     timings: WireTimings
+    cold_start: ColdStart = False
 
 
 # ------------------------------------------------------------------------------ a message that breaks it

@@ -12,9 +12,16 @@ from server.streams import Pending
 
 
 def sector_answer(
-    p: Pending, r: SectorOutcome, gap: int, t0: float, model_s: float, class_names: tuple[str, ...]
+    p: Pending,
+    r: SectorOutcome,
+    gap: int,
+    cold: bool,
+    t0: float,
+    model_s: float,
+    class_names: tuple[str, ...],
 ) -> DetectionsReply | ServiceError:
-    """t0: time.monotonic() when the forward started; model_s: its seconds."""
+    """cold: the sector ran on a fresh state; t0: time.monotonic() when the forward started; model_s: its
+    seconds."""
     if isinstance(r, SectorRejected):  # too big for the fixed-shape step: this sector only, state unchanged
         return ServiceError(ErrorCode.INVALID_FIELD, f"{r.message} (seq {p.msg.seq} not run)", r.field)
     d = r.detections
@@ -33,4 +40,5 @@ def sector_answer(
             model_ms=model_s * 1e3,
             total_ms=(time.monotonic() - p.submitted) * 1e3,
         ),
+        cold_start=cold,
     )

@@ -330,6 +330,7 @@ class Worker:
     def _run_batch(self, batch: list[Pending]) -> None:
         with self._cond:
             gaps = [self._gap(p) for p in batch]
+            colds = [p.msg.reset or p.entry.last_seq is None for p in batch]  # on a fresh state
             prior = [self._states.prior(p.entry.state, p.msg.reset) for p in batch]
         t0 = time.monotonic()
         new_states: list[Any] = [None] * len(batch)  # None: the stream's state stays as it was
@@ -339,8 +340,8 @@ class Worker:
             results, stepped = self.det.step([p.points for p in batch], states)
             model_s = time.monotonic() - t0
             outcomes: list[Answer] = [
-                (p.future, p.transport, sector_answer(p, r, g, t0, model_s, names))
-                for p, r, g in zip(batch, results, gaps, strict=True)
+                (p.future, p.transport, sector_answer(p, r, g, c, t0, model_s, names))
+                for p, r, g, c in zip(batch, results, gaps, colds, strict=True)
             ]
             new_states = [
                 None if isinstance(r, SectorRejected) else s for r, s in zip(results, stepped, strict=True)

@@ -109,8 +109,20 @@ def test_gap_is_reported_and_reset_starts_fresh(det, scan_a, ref_a):
         r = ok(w.submit(sector_msg("car", 3, scan_a[1], index=1)))
         assert r.gap == 2 and w.stream("car")["gaps"] == 2
         fresh = ok(w.submit(sector_msg("car", 0, scan_a[0], reset=True)))  # seq may restart with reset
-        assert fresh.gap == 0 and fresh.context_sectors == 1
+        assert fresh.gap == 0 and fresh.context_sectors == 1 and fresh.cold_start
         check(fresh, ref_a[0])
+
+
+def test_a_reply_says_when_its_stream_started_cold(det, scan_a):
+    """cold_start: the sector ran on a fresh state. A stream's first sector, and the next one after the
+    stream was ended (or evicted, or lost in a restart) even with a later seq; not the sectors between."""
+    with running(det) as w:
+        first, second = (ok(w.submit(sector_msg("car", i, scan_a[i]))) for i in range(2))
+        assert (first.cold_start, second.cold_start) == (True, False)
+        w.end_stream("car")
+        again = ok(w.submit(sector_msg("car", 2, scan_a[2])))
+        assert again.cold_start and again.context_sectors == 1 and again.gap == 0
+        assert not ok(w.submit(sector_msg("car", 3, scan_a[3]))).cold_start
 
 
 def test_overload_rejects_at_once_and_every_request_is_answered_once(det, monkeypatch, scan_a, ref_a):
@@ -202,7 +214,7 @@ def test_idle_eviction(det, scan_a):
         assert w.streams() == []
         assert w.metrics.evictions._value.get() == 2
         r = ok(w.submit(sector_msg("a", 1, scan_a[1])))
-        assert r.context_sectors == 1  # evicted: the stream starts cold
+        assert r.context_sectors == 1 and r.cold_start  # evicted: the stream starts cold, and says so
 
 
 def test_end_stream(det, monkeypatch, scan_a):
