@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,7 +16,7 @@ from typing import Any
 import pytest
 from click.testing import CliRunner
 from client_helpers import EVERY, Served, loadtest_config, png_is_a_picture, serve_both
-from server_helpers import default_detector
+from server_helpers import default_detector, serve
 
 from clients.connect import Transport
 from clients.loadtest.config import LoadTestConfig, Mode, OutputConfig, Thresholds
@@ -143,8 +144,26 @@ def test_cli_loadtest_without_a_server_fails_cleanly(tmp_path: Path) -> None:
     url = f"http://127.0.0.1:{free_port()}"
     args = ["loadtest", "--url", url, "--duration", "0.5", "--sectors-per-turn", "4", "--synthetic"]
     result = CliRunner().invoke(app, [*args, "--no-progress", "--out", str(tmp_path / "x.json")])
-    assert result.exit_code == 0, result.output  # every sector is counted: lost to the transport
+    assert result.exit_code == 1, result.output  # every sector is counted: lost to the transport
+    assert "sectors lost to transport failures (server gone?): exit code 1" in result.output
     doc = json.loads((tmp_path / "x.json").read_text())
     assert (
         doc["sent"] > 0 and doc["lost"] == doc["sent"] and doc["lost_by_reason"] == {"transport": doc["sent"]}
     )
+
+
+def test_a_server_that_goes_away_mid_run_fails_the_run_without_a_retry_storm(
+    det: StreamingDetector, tmp_path: Path
+) -> None:
+    """Closed loop, the server stops after 1 s of 4: each vehicle backs off (50 ms doubling to 1 s) instead
+    of retrying as fast as connections are refused (~900 a second before), and the run exits 1."""
+    out = tmp_path / "gone.json"
+    with serve(det) as s:
+        threading.Timer(1.0, lambda: setattr(s.server, "should_exit", True)).start()
+        args = ["loadtest", "--url", s.url, "--mode", "closed", "--vehicles", "2", "--duration", "4"]
+        args += ["--warmup", "0", "--synthetic", "--every", str(EVERY), "--no-progress", "--out", str(out)]
+        result = CliRunner().invoke(app, args)
+    assert result.exit_code == 1, result.output
+    doc = json.loads(out.read_text())
+    lost = doc["lost_by_reason"].get("transport", 0)
+    assert 0 < lost <= 2 * 10 and doc["lost_to_transport"] == lost, doc["lost_by_reason"]

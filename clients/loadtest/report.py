@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from clients.loadtest.config import LoadTestConfig
+from clients.loadtest.record import Lost
 from clients.loadtest.stats import StepResult
 
 TOTALS = ("sent", "answered", "ok", "errors", "lost", "uncounted")
@@ -64,9 +65,16 @@ class LoadTestReport:
         return any(s.passed for s in self.steps)
 
     @property
+    def unreachable(self) -> int:
+        """Sectors lost to transport failures (connection refused or reset, an unreadable reply): the server
+        went away or never answered."""
+        return sum(s.lost_by_reason.get(Lost.TRANSPORT.value, 0) for s in self.steps)
+
+    @property
     def exit_code(self) -> int:
-        """1 when thresholds are enforced and the run did not pass, else 0."""
-        return int(self.config.thresholds.enforced and not self.passed)
+        """1 when thresholds are enforced and the run did not pass, or when sectors were lost to transport
+        failures (with or without thresholds: the server was not there to measure), else 0."""
+        return int((self.config.thresholds.enforced and not self.passed) or self.unreachable > 0)
 
     @property
     def peak_step(self) -> StepResult:
@@ -117,6 +125,7 @@ def to_json(report: LoadTestReport) -> dict[str, Any]:
             "thresholds": dataclasses.asdict(report.config.thresholds),
             "passed": report.passed,
             "exit_code": report.exit_code,
+            "lost_to_transport": report.unreachable,
             "max_vehicles_held": report.max_vehicles_held,
             "peak_achieved_sectors_per_s": report.peak_step.achieved_sectors_per_s,
             "peak_vehicles": report.peak_step.vehicles,
@@ -221,4 +230,7 @@ def _thresholds_line(report: LoadTestReport) -> str:
     limits += ["stable windows"] if report.config.windows is not None else []
     verdict = "passed" if report.passed else "failed"
     how = f"exit code {report.exit_code}" if t.enforced else "not enforced (no threshold given)"
-    return f"Thresholds: {', '.join(limits) or 'none'}; {verdict}, {how}."
+    line = f"Thresholds: {', '.join(limits) or 'none'}; {verdict}, {how}."
+    if report.unreachable:
+        line += f"\n{report.unreachable} sectors lost to transport failures (server gone?): exit code 1."
+    return line

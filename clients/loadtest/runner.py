@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 from clients.base import ClientError, DetectorClient, ServerError, TransportError
 from clients.loadtest.config import LoadTestConfig, Mode, WindowConfig
-from clients.loadtest.record import Record
+from clients.loadtest.record import Lost, Record
 from clients.loadtest.source import SectorSource
 from clients.loadtest.windows import Span, Timeline, is_stable
 from contract import SectorMessage
@@ -139,6 +139,7 @@ class StepRunner:
         if delay > 0:
             await asyncio.sleep(delay)
         guard = self.cfg.connect.timeout_s + self.cfg.drain_timeout_s  # the client's own timeout comes first
+        backoff = 0.0  # after a transport failure (server gone): wait before the next send, doubling to 1 s
         for k in itertools.count():
             if loop.time() >= step.stop:
                 return
@@ -146,6 +147,9 @@ class StepRunner:
             step.records.append(rec)
             with contextlib.suppress(TimeoutError):  # unanswered: counted as lost (drain)
                 await asyncio.wait_for(self._send(step, rec), guard)
+            backoff = min(1.0, max(0.05, 2 * backoff)) if rec.lost is Lost.TRANSPORT else 0.0
+            if backoff:
+                await asyncio.sleep(min(backoff, max(0.0, step.stop - loop.time())))
 
     # ------------------------------------------------------------------------------------------- helpers
 
