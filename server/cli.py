@@ -81,6 +81,7 @@ def run_server(settings: Settings) -> None:
     import uvicorn
 
     from server.app import create_app
+    from server.http_protocol import with_deadlines
     from server.logs import configure_logging
 
     configure_logging(settings.log_level, settings.log_format)
@@ -102,6 +103,7 @@ def run_server(settings: Settings) -> None:
         log_level=settings.log_level,
         access_log=settings.access_log,
         ws="none",
+        http=with_deadlines(settings.http_header_timeout_s, settings.http_body_timeout_s),
         lifespan="on",
         timeout_graceful_shutdown=max(1, round(settings.drain_timeout_s)),
     )

@@ -50,6 +50,12 @@ class Settings(BaseSettings):
     # HTTP
     host: str = Field("127.0.0.1", description="HTTP bind address.")
     port: int = Field(DEFAULT_HTTP_PORT, ge=0, le=65535, description="HTTP port.")
+    http_header_timeout_s: float = Field(
+        10.0, gt=0, description="A request's headers must arrive within this (else the connection closes)."
+    )
+    http_body_timeout_s: float = Field(
+        30.0, gt=0, description="A request's body must arrive within this of its headers (else it closes)."
+    )
     # model
     checkpoint: Path | None = Field(
         None, description="Weights to serve [default: the embedded default model]."

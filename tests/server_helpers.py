@@ -26,6 +26,7 @@ from model.sectors import split_turn
 from model.stream import StreamingDetector
 from server.app import create_app
 from server.default_model import DEFAULT_SEED, load_default_model
+from server.http_protocol import with_deadlines
 from server.settings import Settings
 
 FIELDS = ("x", "y", "z", "intensity")
@@ -155,7 +156,10 @@ def serve(det: Detector | None, wait_ready: bool = True, **overrides: Any) -> It
     the one the settings build)."""
     settings = make_settings(**overrides)
     app = create_app(settings, detector=det)
-    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", ws="none", lifespan="on")
+    http = with_deadlines(settings.http_header_timeout_s, settings.http_body_timeout_s)  # as `phim serve`
+    config = uvicorn.Config(
+        app, host="127.0.0.1", port=0, log_level="warning", ws="none", http=http, lifespan="on"
+    )
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
     thread.start()

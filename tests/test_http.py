@@ -321,3 +321,36 @@ def test_a_client_leaving_mid_body_is_no_error(server, caplog: pytest.LogCapture
         assert httpx.get(f"{server.url}/health/live", timeout=10).status_code == 200
     errors = [r for r in caplog.records if r.levelno >= 40]
     assert not errors, [r.getMessage() for r in errors]
+
+
+def test_connections_that_stall_are_closed_and_a_slow_honest_one_is_served(det, caplog):
+    """Read deadlines (server/http_protocol.py): a connection that sends nothing, half its headers or half
+    its body is closed once its deadline passes (before: held open for good); a body sent in slow chunks
+    within the deadline is served. Nothing is logged as an error."""
+    import socket
+
+    with serve(det, http_header_timeout_s=0.5, http_body_timeout_s=0.8) as s:
+        host, port = s.url.removeprefix("http://").split(":")
+        head = "POST /v1/streams/slow/sectors HTTP/1.1\r\nHost: x\r\nContent-Type: application/msgpack\r\n"
+        body = encode_sector(sector_msg("slow", 0, np.zeros((10, 4), np.float32)))
+        stalls = {
+            "idle": b"",
+            "half headers": head.encode(),
+            "half body": f"{head}Content-Length: {len(body)}\r\n\r\n".encode() + body[:10],
+        }
+        with caplog.at_level("INFO"):
+            for name, sent in stalls.items():
+                with socket.create_connection((host, int(port)), timeout=5) as sock:
+                    sock.sendall(sent)
+                    t0 = time.monotonic()
+                    assert sock.recv(1024) == b"", name  # closed by the server, no reply
+                    assert 0.4 < time.monotonic() - t0 < 3, name
+            with socket.create_connection((host, int(port)), timeout=5) as sock:
+                sock.sendall(f"{head}Content-Length: {len(body)}\r\n\r\n".encode())
+                for k in range(0, len(body), len(body) // 3 + 1):
+                    time.sleep(0.15)
+                    sock.sendall(body[k : k + len(body) // 3 + 1])
+                reply = sock.recv(65536)
+        assert reply.startswith(b"HTTP/1.1 200"), reply[:200]
+    assert not [r for r in caplog.records if r.levelno >= 40]
+    assert sum("closing a connection" in r.getMessage() for r in caplog.records) == 3
