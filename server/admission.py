@@ -3,6 +3,9 @@ sector never enters a batch (its own INVALID_FIELD error names the field and wha
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
@@ -45,3 +48,40 @@ def sector_points(msg: SectorMessage, cfg: PHiMConfig) -> torch.Tensor:
             "points",
         )
     return torch.from_numpy(points)
+
+
+@dataclass
+class Backlog:
+    """The sectors and points waiting for the device loop (not running), against their limits. The points
+    bound the memory the queue holds (a sector's points are copied on admission): a sector that would pass
+    `max_points` waits for room (OVERLOADED, retry later) unless the queue is empty, so one sector of up
+    to `max_points` per sector (the decoder's limit) can always run."""
+
+    max_sectors: int
+    max_points: int
+    sectors: int = 0
+    points: int = 0
+
+    def check(self, n_points: int, retry_after_s: float) -> None:
+        """Raise OVERLOADED unless a sector of n_points fits."""
+        if self.sectors >= self.max_sectors:
+            why = f"queue full: {self.sectors} sectors waiting (queue_size={self.max_sectors})"
+        elif self.sectors and self.points + n_points > self.max_points:
+            why = (
+                f"queue full: {self.points} points waiting, {n_points} more would pass "
+                f"max_queued_points={self.max_points}"
+            )
+        else:
+            return
+        raise ServiceError(
+            ErrorCode.OVERLOADED, f"{why}; retry after {retry_after_s:.2f} s", retry_after_s=retry_after_s
+        )
+
+    def add(self, n_points: int) -> None:
+        self.sectors += 1
+        self.points += n_points
+
+    def remove(self, point_counts: Iterable[int]) -> None:
+        for n in point_counts:
+            self.sectors -= 1
+            self.points -= n

@@ -96,6 +96,12 @@ class Settings(BaseSettings):
     )
     # scheduler and stream table
     max_batch: int = Field(8, ge=1, description="Streams per forward.")
+    max_queued_points: int = Field(
+        4_000_000,
+        ge=1,
+        description="Points waiting for the device loop, all streams together (bounds the queue's memory; "
+        "beyond: 503 overloaded, unless the queue is empty).",
+    )
     max_wait_ms: float = Field(
         0.0, ge=0, description="How long the oldest sector may wait for a fuller batch."
     )
@@ -191,6 +197,7 @@ class Settings(BaseSettings):
             max_batch=self.max_batch,
             max_wait_ms=self.max_wait_ms,
             queue_size=self.queue_size,
+            max_queued_points=self.max_queued_points,
             deadline_ms=self.deadline_ms,
             idle_timeout_s=self.idle_timeout_s,
             max_streams=self.max_streams,

@@ -24,7 +24,7 @@ import torch
 
 from contract import DetectionsReply, ErrorCode, SectorMessage, ServiceError
 from model.graph.engine import Detector, SectorRejected
-from server.admission import sector_points
+from server.admission import Backlog, sector_points
 from server.device_states import DetectorStates
 from server.metrics import OK, Metrics
 from server.outcomes import sector_answer
@@ -43,6 +43,7 @@ class WorkerConfig:
     max_batch: int = 8  # sectors (one per stream) per forward
     max_wait_ms: float = 0.0  # how long the oldest sector may wait for a fuller batch (0: take what's queued)
     queue_size: int = 64  # sectors waiting, all streams together; beyond: OVERLOADED
+    max_queued_points: int = 4_000_000  # points waiting, all streams together; beyond: OVERLOADED
     deadline_ms: float = 2000.0  # a sector not started by then gets DEADLINE_EXCEEDED
     idle_timeout_s: float = 10.0
     max_streams: int = 256
@@ -76,7 +77,7 @@ class Worker:
             cfg.max_streams, cfg.idle_timeout_s, self._evicted, st.new_state, st.drop_state
         )
         self._cond = threading.Condition()
-        self._depth = 0  # sectors queued (not running)
+        self._backlog = Backlog(cfg.queue_size, cfg.max_queued_points)  # sectors queued (not running)
         self._ready = False
         self._closing = False
         self._drain_until = math.inf
@@ -85,7 +86,7 @@ class Worker:
         self._evict_tick_s = min(1.0, max(0.01, cfg.idle_timeout_s / 4))
         self._next_evict = 0.0
         self._thread: threading.Thread | None = None
-        self.metrics.bind(lambda: self._depth, lambda: len(self.table))
+        self.metrics.bind(lambda: self._backlog.sectors, lambda: len(self.table))
         self.metrics.max_streams.set(cfg.max_streams)
         self.metrics.max_queued.set(cfg.queue_size)
 
@@ -116,7 +117,7 @@ class Worker:
 
     @property
     def queue_depth(self) -> int:
-        return self._depth
+        return self._backlog.sectors
 
     def wait_ready(self, timeout_s: float) -> bool:
         """Block until warmed up (True), or loading / warm-up failed or the timeout passed (False)."""
@@ -179,7 +180,7 @@ class Worker:
                 self.metrics.ready.set(0)
                 self._drain_until = time.monotonic() + drain_timeout_s
                 self._cond.notify_all()
-            self._cond.wait_for(lambda: self._depth == 0, drain_timeout_s)
+            self._cond.wait_for(lambda: self._backlog.sectors == 0, drain_timeout_s)
             failed = self._expire(math.inf)  # what the loop did not get to (stuck, slow or never started)
         self._settle(failed)
         if self._thread is not None:
@@ -204,26 +205,20 @@ class Worker:
             raise ServiceError(
                 ErrorCode.NOT_READY, f"worker {self.worker_id}: {self.status}; not taking sectors"
             )
-        if self._depth >= self.cfg.queue_size:
-            retry = max(0.01, math.ceil(self._depth / self.cfg.max_batch) * self._batch_s)
-            raise ServiceError(
-                ErrorCode.OVERLOADED,
-                f"queue full: {self._depth} sectors waiting (queue_size={self.cfg.queue_size}); "
-                f"retry after {retry:.2f} s",
-                retry_after_s=retry,
-            )
+        retry = max(0.01, math.ceil(self._backlog.sectors / self.cfg.max_batch) * self._batch_s)
+        self._backlog.check(int(points.shape[0]), retry)
         entry = self.table.admit(msg, now)
         entry.pending.append(
             Pending(msg, points, fut, transport, entry, now, now + self.cfg.deadline_ms / 1e3)
         )
-        self._depth += 1
+        self._backlog.add(int(points.shape[0]))
 
     def _drop_pending(self, entry: StreamEntry, code: ErrorCode, why: str) -> list[Answer]:
         failed: list[Answer] = [
             (p.future, p.transport, ServiceError(code, f"{why} before seq {p.msg.seq} ran"))
             for p in entry.pending
         ]
-        self._depth -= len(entry.pending)
+        self._backlog.remove(int(p.points.shape[0]) for p in entry.pending)
         entry.pending.clear()
         self._cond.notify_all()
         entry.forget_failed()
@@ -296,7 +291,7 @@ class Worker:
         batch = [e.pending.popleft() for e in heads[: due.sectors]]
         for p in batch:
             p.entry.running = True
-        self._depth -= len(batch)
+        self._backlog.remove(int(p.points.shape[0]) for p in batch)
         self._cond.notify_all()  # close() waits for the queue to empty
         return batch
 
@@ -308,7 +303,7 @@ class Worker:
             before = len(failed)
             while entry.pending and (draining_over or entry.pending[0].deadline < now):
                 p = entry.pending.popleft()
-                self._depth -= 1
+                self._backlog.remove([int(p.points.shape[0])])
                 failed.append((p.future, p.transport, self._expired_error(p, now, draining_over)))
             if len(failed) > before:
                 entry.forget_failed()

@@ -285,3 +285,23 @@ def test_close_answers_what_the_drain_timeout_leaves(det, monkeypatch, scan_a):
     closer.join(60)
     assert ok(in_forward).seq == 0
     assert answered(w) == {"ok": 1.0, "not_ready": 2.0}
+
+
+def test_queued_points_are_bounded_and_an_empty_queue_takes_any_sector(det, monkeypatch, scan_a):
+    """max_queued_points bounds the memory the queue holds: a sector that would pass it gets OVERLOADED at
+    once (nothing queued, its stream unharmed); one that fits, or any sector when the queue is empty, is
+    queued and answered."""
+    big, small = scan_a[0][:3000], scan_a[1][:1000]
+    with running(det, max_queued_points=5000) as w:
+        gate = StepGate.install(det, monkeypatch)
+        running_one = w.submit(sector_msg("r", 0, scan_a[2]))
+        assert gate.entered.wait(30)  # in the forward: the queue is empty
+        alone = w.submit(sector_msg("a", 0, np.concatenate([scan_a[0]] * 2)[:6000]))  # > 5000, queue empty
+        refused = w.submit(sector_msg("b", 0, big))  # 6000 + 3000 > 5000
+        e = err(refused)
+        assert e.code == ErrorCode.OVERLOADED and "max_queued_points=5000" in e.message and e.retry_after_s
+        assert w.queue_depth == 1
+        gate.release()
+        assert ok(running_one).context_sectors == ok(alone).context_sectors == 1
+        later = [w.submit(sector_msg("c", 0, small)), w.submit(sector_msg("b", 0, big))]  # 4000: both fit
+        assert [ok(f).context_sectors for f in later] == [1, 1]  # b was never started: seq 0 again
