@@ -124,6 +124,6 @@ def test_client_options_come_from_the_environment_and_json_goes_to_stdout(
         "--json",
     ]
     result = CliRunner().invoke(app, args)
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 1, result.output  # lost to the transport: a failed run
     doc = json.loads(result.stdout)  # stdout holds the JSON and nothing else
     assert doc["config"]["connect"]["url"] == url and doc["sent"] == doc["lost"] > 0
