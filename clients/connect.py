@@ -28,6 +28,7 @@ class ConnectConfig:
     timeout_s: float = 10.0
     use_http_control: bool = True  # over zenoh, reach model info / end stream at `url`
     token: str | None = None  # bearer token for HTTP (`phim serve --auth-tokens`)
+    ca_cert: str | None = None  # https: the CA (PEM) the server's certificate is checked against
 
 
 def make_client(cfg: ConnectConfig, max_connections: int | None = 256) -> DetectorClient:
@@ -38,7 +39,11 @@ def make_client(cfg: ConnectConfig, max_connections: int | None = 256) -> Detect
     if cfg.transport is Transport.HTTP:
         return HttpClient(
             config=HttpConfig(
-                url=cfg.url, timeout_s=cfg.timeout_s, max_connections=max_connections, token=cfg.token
+                url=cfg.url,
+                timeout_s=cfg.timeout_s,
+                max_connections=max_connections,
+                token=cfg.token,
+                ca_cert=cfg.ca_cert,
             )
         )
     return ZenohClient(
@@ -50,5 +55,6 @@ def make_client(cfg: ConnectConfig, max_connections: int | None = 256) -> Detect
             config_file=cfg.zenoh_config_file,
             http_url=cfg.url if cfg.use_http_control else None,
             token=cfg.token,
+            ca_cert=cfg.ca_cert,
         )
     )

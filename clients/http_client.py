@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import ssl
 import urllib.parse
 from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass
@@ -46,6 +47,7 @@ class HttpConfig:
     connect_timeout_s: float = 5.0
     max_connections: int | None = 256  # open connections, idle or busy, per path (sync, async); None: any
     token: str | None = None  # a bearer token (`phim serve --auth-tokens`), sent on every request
+    ca_cert: str | None = None  # https: trust this CA (PEM) instead of the system's
 
 
 class HttpClient(DetectorClient):
@@ -62,8 +64,15 @@ class HttpClient(DetectorClient):
             max_connections=cfg.max_connections, max_keepalive_connections=cfg.max_connections
         )
         self._headers = {"Authorization": f"Bearer {cfg.token}"} if cfg.token else {}
+        self._verify: ssl.SSLContext | bool = (
+            ssl.create_default_context(cafile=cfg.ca_cert) if cfg.ca_cert else True
+        )
         self._sync = httpx.Client(
-            base_url=cfg.url, timeout=self._timeout, limits=self._limits, headers=self._headers
+            base_url=cfg.url,
+            timeout=self._timeout,
+            limits=self._limits,
+            headers=self._headers,
+            verify=self._verify,
         )
         self._async: httpx.AsyncClient | None = None
         self._closed = False
@@ -126,7 +135,11 @@ class HttpClient(DetectorClient):
             raise TransportError("the client is closed")
         if self._async is None:
             self._async = httpx.AsyncClient(
-                base_url=self.config.url, timeout=self._timeout, limits=self._limits, headers=self._headers
+                base_url=self.config.url,
+                timeout=self._timeout,
+                limits=self._limits,
+                headers=self._headers,
+                verify=self._verify,
             )
         return self._async
 

@@ -68,6 +68,13 @@ CONNECTION: list[Decorator] = [
         help="A bearer token for a server run with --auth-tokens (phim auth add-token).",
     ),
     click.option(
+        "--ca-cert",
+        envvar="PHIM_CA_CERT",
+        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        show_envvar=True,
+        help="An https --url: check the server's certificate against this CA (PEM) instead of the system's.",
+    ),
+    click.option(
         "--timeout",
         envvar="PHIM_TIMEOUT_S",
         type=click.FloatRange(0.001),
@@ -80,7 +87,7 @@ CONNECTION: list[Decorator] = [
 
 
 def connection_options(command: Callable[..., Any]) -> Callable[..., Any]:
-    """--transport, --url, --zenoh-connect, --zenoh-mode, --zenoh-config, --token, --timeout: see
+    """--transport, --url, --zenoh-connect, --zenoh-mode, --zenoh-config, --token, --ca-cert, --timeout: see
     `connect_config`."""
     for option in reversed(CONNECTION):
         command = option(command)
@@ -94,6 +101,7 @@ def connect_config(
     zenoh_mode: str,
     zenoh_config: Path | None,
     token: str | None,
+    ca_cert: Path | None,
     timeout: float,
 ) -> ConnectConfig:
     """The connection options -> a ConnectConfig."""
@@ -105,4 +113,5 @@ def connect_config(
         zenoh_config_file=None if zenoh_config is None else str(zenoh_config),
         timeout_s=timeout,
         token=token or None,
+        ca_cert=None if ca_cert is None else str(ca_cert),
     )

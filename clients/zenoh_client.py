@@ -53,6 +53,7 @@ class ZenohClientConfig:
     config_file: str | None = None  # a zenoh JSON5 file (TLS, ...); the fields above override it
     http_url: str | None = None  # the same server's HTTP address, for model_info / end_stream
     token: str | None = None  # the bearer token for http_url
+    ca_cert: str | None = None  # the CA (PEM) an https http_url is checked against
 
 
 class ZenohClient(DetectorClient):
@@ -74,7 +75,7 @@ class ZenohClient(DetectorClient):
             raise TransportError(
                 f"zenoh: cannot open a {cfg.mode} session to {list(cfg.connect)}: {e}"
             ) from e
-        self._http = HttpClient(cfg.http_url, token=cfg.token) if cfg.http_url else None
+        self._http = HttpClient(cfg.http_url, token=cfg.token, ca_cert=cfg.ca_cert) if cfg.http_url else None
 
     # ------------------------------------------------------------------------------------------ sectors
 

@@ -9,13 +9,16 @@ import signal
 import types
 import typing
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from pydantic import ValidationError
 from pydantic.fields import FieldInfo
 
 from server.settings import Settings
+
+if TYPE_CHECKING:
+    import uvicorn
 
 ENV_PREFIX = "PHIM_"
 
@@ -81,38 +84,49 @@ def run_server(settings: Settings) -> None:
     import uvicorn
 
     from server.app import create_app
-    from server.http_protocol import with_deadlines
     from server.logs import configure_logging
 
     configure_logging(settings.log_level, settings.log_format)
     if settings.threads:
         torch.set_num_threads(settings.threads)
     logging.getLogger("phim.serve").info(
-        "phim serve: http://%s:%d worker=%s zenoh=%s torch_threads=%d",
+        "phim serve: %s://%s:%d worker=%s zenoh=%s torch_threads=%d",
+        "https" if settings.tls_cert else "http",
         settings.host,
         settings.port,
         settings.worker_id,
         settings.zenoh_enabled,
         torch.get_num_threads(),
     )
-    config = uvicorn.Config(
-        create_app(settings),
-        host=settings.host,
-        port=settings.port,
-        log_config=None,
-        log_level=settings.log_level,
-        access_log=settings.access_log,
-        ws="none",
-        http=with_deadlines(settings.http_header_timeout_s, settings.http_body_timeout_s),
-        lifespan="on",
-        timeout_graceful_shutdown=max(1, round(settings.drain_timeout_s)),
-    )
-    server = uvicorn.Server(config)
+    server = uvicorn.Server(uvicorn_config(create_app(settings), settings))
     for sig in (signal.SIGINT, signal.SIGTERM):  # uvicorn re-raises the signal after its graceful shutdown:
         signal.signal(sig, _after_shutdown)  # end with exit code 0 instead of dying by it again
     server.run()
     if not server.started:
         raise SystemExit(1)  # startup failed (the log says why)
+
+
+def uvicorn_config(app: Any, settings: Settings, log_level: str | None = None) -> uvicorn.Config:
+    """The uvicorn config `phim serve` runs `app` with (the tests' servers too): its address, TLS, read
+    deadlines (`server.http_protocol`) and graceful shutdown."""
+    import uvicorn
+
+    from server.http_protocol import with_deadlines
+
+    return uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_config=None,
+        log_level=log_level or settings.log_level,
+        access_log=settings.access_log,
+        ws="none",
+        http=with_deadlines(settings.http_header_timeout_s, settings.http_body_timeout_s),
+        ssl_certfile=settings.tls_cert,
+        ssl_keyfile=settings.tls_key,
+        lifespan="on",
+        timeout_graceful_shutdown=max(1, round(settings.drain_timeout_s)),
+    )
 
 
 def _after_shutdown(sig: int, frame: object) -> None:

@@ -50,6 +50,10 @@ class Settings(BaseSettings):
     # HTTP
     host: str = Field("127.0.0.1", description="HTTP bind address.")
     port: int = Field(DEFAULT_HTTP_PORT, ge=0, le=65535, description="HTTP port.")
+    tls_cert: Path | None = Field(
+        None, description="A PEM certificate (chain): serve HTTPS with it and --tls-key instead of HTTP."
+    )
+    tls_key: Path | None = Field(None, description="The PEM private key of --tls-cert.")
     http_header_timeout_s: float = Field(
         10.0, gt=0, description="A request's headers must arrive within this (else the connection closes)."
     )
@@ -165,6 +169,15 @@ class Settings(BaseSettings):
                 "send to, read and end every stream; give --auth-tokens FILE (phim auth add-token), or "
                 "--insecure (PHIM_INSECURE=1) to accept that"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _cert_with_its_key(self) -> Settings:
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key: give both (HTTPS) or neither (HTTP)")
+        for path in (self.tls_cert, self.tls_key):
+            if path is not None and not path.is_file():
+                raise ValueError(f"{path}: no such file")
         return self
 
     @field_validator("auth_tokens")

@@ -25,8 +25,8 @@ from model.graph.engine import Detector
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 from server.app import create_app
+from server.cli import uvicorn_config
 from server.default_model import DEFAULT_SEED, load_default_model
-from server.http_protocol import with_deadlines
 from server.settings import Settings
 
 FIELDS = ("x", "y", "z", "intensity")
@@ -156,10 +156,7 @@ def serve(det: Detector | None, wait_ready: bool = True, **overrides: Any) -> It
     the one the settings build)."""
     settings = make_settings(**overrides)
     app = create_app(settings, detector=det)
-    http = with_deadlines(settings.http_header_timeout_s, settings.http_body_timeout_s)  # as `phim serve`
-    config = uvicorn.Config(
-        app, host="127.0.0.1", port=0, log_level="warning", ws="none", http=http, lifespan="on"
-    )
+    config = uvicorn_config(app, settings, log_level="warning")  # as `phim serve` runs it
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
     thread.start()
@@ -170,7 +167,8 @@ def serve(det: Detector | None, wait_ready: bool = True, **overrides: Any) -> It
             threading.Event().wait(0.05)
         assert server.started, "uvicorn did not start"
         port = server.servers[0].sockets[0].getsockname()[1]
-        running = RunningServer(f"http://127.0.0.1:{port}", server, thread)
+        scheme = "https" if settings.tls_cert else "http"
+        running = RunningServer(f"{scheme}://127.0.0.1:{port}", server, thread)
         if wait_ready:
             assert app.state.services.worker.wait_ready(60), app.state.services.worker.status
         yield running
