@@ -1,8 +1,8 @@
-"""Test certificates for HTTPS and zenoh TLS: a CA, a server certificate for localhost / 127.0.0.1 and a
-client certificate (mTLS), as PEM files in a folder. For tests and trying things out, not production:
-the keys are written unencrypted.
+"""Test certificates for HTTPS and zenoh TLS: a CA, a server certificate for localhost / 127.0.0.1 and one
+client certificate per name (with mTLS the name is the zenoh ACL subject), as PEM files in a folder. For
+tests and trials, not production: the keys are written unencrypted.
 
-    python scripts/make_test_certs.py certs/   # ca.pem, server.pem, server-key.pem, client(-key).pem
+    python scripts/make_test_certs.py certs/ --clients car-1,car-2   # ca, server, car-1, car-2 (+ -key)
 """
 
 from __future__ import annotations
@@ -77,17 +77,17 @@ def _cert(
     return b.sign(issuer_key, hashes.SHA256())
 
 
-def make_certs(folder: Path, client_name: str = "phim-client") -> dict[str, Path]:
-    """Write the CA, server and client certificates and keys into `folder` -> their paths by name."""
+def make_certs(folder: Path, clients: tuple[str, ...] = ("client",)) -> dict[str, Path]:
+    """Write the CA, the server's and each client's certificate and key into `folder` (client files are
+    named by their common name) -> their paths by name."""
     folder.mkdir(parents=True, exist_ok=True)
     ca_key = ec.generate_private_key(ec.SECP256R1())
     ca = _cert("phim test CA", ca_key, None, ca_key, None)
     out = {"ca": folder / "ca.pem"}
     out["ca"].write_bytes(ca.public_bytes(serialization.Encoding.PEM))
-    for name, cn, usage in (
-        ("server", "localhost", ExtendedKeyUsageOID.SERVER_AUTH),
-        ("client", client_name, ExtendedKeyUsageOID.CLIENT_AUTH),
-    ):
+    wanted = [("server", "localhost", ExtendedKeyUsageOID.SERVER_AUTH)]
+    wanted += [(name, name, ExtendedKeyUsageOID.CLIENT_AUTH) for name in clients]
+    for name, cn, usage in wanted:
         key = ec.generate_private_key(ec.SECP256R1())
         cert = _cert(cn, key, ca, ca_key, usage)
         out[name] = folder / f"{name}.pem"
@@ -100,9 +100,13 @@ def make_certs(folder: Path, client_name: str = "phim-client") -> dict[str, Path
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path)
-    parser.add_argument("--client-name", default="phim-client", help="The client certificate's common name.")
+    parser.add_argument(
+        "--clients",
+        default="client",
+        help="Comma-separated common names: one client certificate each (e.g. car-1,car-2,phim-worker).",
+    )
     args = parser.parse_args()
-    for name, path in make_certs(args.folder, args.client_name).items():
+    for name, path in make_certs(args.folder, tuple(args.clients.split(","))).items():
         print(f"{name}: {path}")
 
 
