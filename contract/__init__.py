@@ -197,6 +197,8 @@ def _decode(fmt: _Format, decoder: Any, data: bytes, limits: Limits, maps: dict[
             raise _error(*violation(e, maps)) from None
     except msgspec.DecodeError as e:
         _fail(ErrorCode.BAD_REQUEST, "body", f"not a valid {fmt.name} message ({e})")
+    except UnicodeDecodeError as e:  # msgspec raises it for a msgpack string that is not UTF-8
+        _fail(ErrorCode.BAD_REQUEST, "body", f"a string is not valid UTF-8 ({e.reason} at byte {e.start})")
 
 
 def _str(value: Any, field: str, limits: Limits) -> str:
