@@ -46,6 +46,10 @@ class HttpConfig:
     timeout_s: float = 10.0  # each send and receive, and waiting for a pooled connection
     connect_timeout_s: float = 5.0
     max_connections: int | None = 256  # open connections, idle or busy, per path (sync, async); None: any
+    # an idle connection is dropped after this, before the server's keep-alive timeout (uvicorn: 5 s) closes
+    # it: a request sent on a connection the server is closing at that moment is lost (seen once in a
+    # 10-minute soak with httpx's default, 5 s, the same as the server's)
+    keepalive_expiry_s: float = 2.0
     token: str | None = None  # a bearer token (`phim serve --auth-tokens`), sent on every request
     ca_cert: str | None = None  # https: trust this CA (PEM) instead of the system's
 
@@ -61,7 +65,9 @@ class HttpClient(DetectorClient):
         self.config = cfg
         self._timeout = httpx.Timeout(cfg.timeout_s, connect=cfg.connect_timeout_s)
         self._limits = httpx.Limits(
-            max_connections=cfg.max_connections, max_keepalive_connections=cfg.max_connections
+            max_connections=cfg.max_connections,
+            max_keepalive_connections=cfg.max_connections,
+            keepalive_expiry=cfg.keepalive_expiry_s,
         )
         self._headers = {"Authorization": f"Bearer {cfg.token}"} if cfg.token else {}
         self._verify: ssl.SSLContext | bool = (

@@ -1,0 +1,186 @@
+"""Soak: a real `phim serve` under twice its measured capacity for a while, over HTTP and zenoh at once.
+
+    python scripts/soak.py --duration 600        # scripts/soak.sh; CI runs --duration 60 (tests/test_soak.py)
+
+1. starts `phim serve` (synthetic warm-up, HTTP and zenoh on free loopback ports, idle eviction after 5 s);
+2. measures its ceiling with a short closed-loop load test (sectors/s);
+3. runs open-loop vehicles at `--factor` x that rate, split over the two transports (one `phim loadtest`
+   each, concurrently), sampling the server's RSS every second;
+4. checks: every sector answered exactly once (detections or an explicit overload/deadline error: none lost),
+   the RSS slope over the second half (MB/min, least squares) under `--max-rss-slope`, and, once the idle
+   timeout has passed, no live streams left;
+5. prints a table, writes `--out` (JSON) if given, exits 1 when a check failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SECTORS_PER_S = 40  # one vehicle at sensor rate: 10 turns/s x 4 sectors
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return math.nan
+
+
+def get_json(url: str) -> dict:
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def slope_mb_per_min(samples: list[tuple[float, float]]) -> float:
+    """Least-squares slope of (seconds, MB) samples, in MB per minute."""
+    n = len(samples)
+    if n < 2:
+        return 0.0
+    mt = sum(t for t, _ in samples) / n
+    mr = sum(r for _, r in samples) / n
+    var = sum((t - mt) ** 2 for t, _ in samples)
+    return 60 * sum((t - mt) * (r - mr) for t, r in samples) / var if var else 0.0
+
+
+def loadtest(url: str, zenoh: str, transport: str, args: list[str], out: Path) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "phim", "loadtest", "--transport", transport, "--url", url]
+    cmd += ["--zenoh-connect", zenoh, "--synthetic", "--no-progress", "--out", str(out), *args]
+    return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def run(duration_s: float, factor: float, idle_s: float) -> dict:
+    port, zport = free_port(), free_port()
+    url, zenoh = f"http://127.0.0.1:{port}", f"tcp/127.0.0.1:{zport}"
+    env = {
+        **os.environ,
+        "PHIM_PORT": str(port),
+        "PHIM_ZENOH_LISTEN": zenoh,
+        "PHIM_IDLE_TIMEOUT_S": str(idle_s),
+    }
+    tmp = Path(tempfile.mkdtemp(prefix="phim-soak-"))
+    log = (tmp / "serve.log").open("w")
+    server = subprocess.Popen(
+        [sys.executable, "-m", "phim", "serve"], cwd=REPO, env=env, stdout=log, stderr=log
+    )
+    try:
+        for _ in range(600):
+            try:
+                if get_json(f"{url}/health/ready")["status"] == "ready":
+                    break
+            except OSError:
+                pass
+            assert server.poll() is None, (tmp / "serve.log").read_text()[-2000:]
+            time.sleep(0.5)
+        probe = tmp / "capacity.json"
+        p = loadtest(url, zenoh, "http", ["--mode", "closed", "--vehicles", "4", "--duration", "5"], probe)
+        p.wait()
+        capacity = json.loads(probe.read_text())["peak_achieved_sectors_per_s"]
+        vehicles = max(2, math.ceil(factor * capacity / SECTORS_PER_S))
+        split = {"http": (vehicles + 1) // 2, "zenoh": vehicles // 2}
+        samples: list[tuple[float, float]] = []
+        done = threading.Event()
+
+        def sample() -> None:
+            t0 = time.monotonic()
+            while not done.wait(1.0):
+                samples.append((time.monotonic() - t0, rss_mb(server.pid)))
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        runs = {}
+        for transport, n in split.items():
+            args = ["--vehicles", str(n), "--duration", str(duration_s), "--warmup", "0"]
+            args += ["--stream-prefix", f"soak-{transport}"]
+            runs[transport] = (
+                loadtest(url, zenoh, transport, args, tmp / f"{transport}.json"),
+                tmp / f"{transport}.json",
+            )
+        reports = {}
+        for transport, (proc, out) in runs.items():
+            _, err = proc.communicate()
+            reports[transport] = json.loads(out.read_text()) if out.exists() else {"error": err[-2000:]}
+        done.set()
+        time.sleep(idle_s + 3)  # idle eviction
+        live = get_json(f"{url}/v1/streams")["live"]
+        half = [s for s in samples if s[0] >= samples[-1][0] / 2] if samples else []
+        return {
+            "duration_s": duration_s,
+            "capacity_sectors_per_s": capacity,
+            "factor": factor,
+            "vehicles": split,
+            "reports": {
+                t: {k: r.get(k) for k in ("sent", "answered", "ok", "errors", "lost", "errors_by_code")}
+                for t, r in reports.items()
+            },
+            "rss_mb_start": samples[0][1] if samples else math.nan,
+            "rss_mb_end": samples[-1][1] if samples else math.nan,
+            "rss_slope_mb_per_min": round(slope_mb_per_min(half), 2),
+            "live_streams_after_idle": live,
+        }
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(60)
+        except subprocess.TimeoutExpired:
+            server.kill()
+        log.close()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=600.0, help="Seconds of load.")
+    parser.add_argument("--factor", type=float, default=2.0, help="Offered load over the measured ceiling.")
+    parser.add_argument("--idle-timeout", type=float, default=5.0, help="The server's idle eviction (s).")
+    parser.add_argument("--max-rss-slope", type=float, default=20.0, help="MB/min over the second half.")
+    parser.add_argument("--out", type=Path, help="Write the result as JSON.")
+    a = parser.parse_args()
+    result = run(a.duration, a.factor, a.idle_timeout)
+    checks = {
+        "every sector answered once": all(
+            r.get("sent") and r["lost"] == 0 and r["sent"] == r["answered"]
+            for r in result["reports"].values()
+        ),
+        "RSS flat": result["rss_slope_mb_per_min"] <= a.max_rss_slope,
+        "no live streams after idle": result["live_streams_after_idle"] == 0,
+    }
+    result["checks"] = checks
+    if a.out:
+        a.out.write_text(json.dumps(result, indent=2))
+    print("| transport | vehicles | sent | answered | ok | errors | lost |")
+    print("|---|---|---|---|---|---|---|")
+    for t, r in result["reports"].items():
+        cells = [t, result["vehicles"][t], *(r[k] for k in ("sent", "answered", "ok", "errors", "lost"))]
+        print("| " + " | ".join(str(c) for c in cells) + " |")
+    print(
+        f"\nceiling {result['capacity_sectors_per_s']:.1f} sectors/s, offered x{a.factor:g} "
+        f"for {a.duration:g} s; "
+        f"RSS {result['rss_mb_start']:.0f} -> {result['rss_mb_end']:.0f} MB, slope "
+        f"{result['rss_slope_mb_per_min']} MB/min (second half); live streams after idle: "
+        f"{result['live_streams_after_idle']}"
+    )
+    for name, ok in checks.items():
+        print(f"{'PASS' if ok else 'FAIL'}: {name}")
+    return 0 if all(checks.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,23 @@
+"""The soak script's CI version: a real `phim serve` at twice its measured ceiling for 60 s over HTTP and
+zenoh at once: every sector answered exactly once, RSS flat, no live streams after the idle timeout
+(scripts/soak.sh runs it for ten minutes)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_sixty_seconds_at_twice_the_ceiling(tmp_path: Path) -> None:
+    out = tmp_path / "soak.json"
+    cmd = [sys.executable, str(REPO / "scripts" / "soak.py"), "--duration", "60", "--out", str(out)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert all(result["checks"].values()), result
+    for report in result["reports"].values():
+        assert report["sent"] > 0 and report["lost"] == 0 and report["errors"] > 0  # overload was reached
