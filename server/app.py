@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from functools import partial
 from typing import Any, Protocol
 
-import msgspec
 from fastapi import FastAPI, Request, Response
 from fastapi.responses import JSONResponse
 from starlette.requests import ClientDisconnect
@@ -25,12 +24,8 @@ from contract import (
     MSGPACK_TYPES,
     ErrorCode,
     ErrorReply,
-    JsonDetections,
     Limits,
     ServiceError,
-    WireDetections,
-    WireError,
-    WireSector,
     check_stream_id,
     decode_sector,
     encode_error,
@@ -43,6 +38,7 @@ from model.graph.engine import Detector, streaming_detector
 from server.auth import Grant, TokenFile
 from server.default_model import init_model, load_default_model
 from server.metrics import Metrics
+from server.openapi import publish_sector_route
 from server.settings import Settings
 from server.warmup import package_version
 from server.worker import Worker
@@ -147,7 +143,7 @@ def create_app(
     app = FastAPI(title="PHiM detection server", version=package_version(), lifespan=lifespan)
     app.add_exception_handler(ServiceError, _service_error_handler)  # type: ignore[arg-type]
     _add_routes(app)
-    _publish_sector_route(app)
+    publish_sector_route(app, SECTOR_PATH)
     return app
 
 
@@ -338,74 +334,7 @@ SECTOR_PATH = "/v1/streams/{stream_id}/sectors"
 
 def _add_routes(app: FastAPI) -> None:
     # the hot route as a plain Starlette route: FastAPI's parameter handling cost about 0.15 ms per sector
-    # (docs/benchmarks.md); `_publish_sector_route` adds it to the OpenAPI document
+    # (docs/benchmarks.md); `server.openapi.publish_sector_route` adds it to the OpenAPI document
     app.router.add_route(SECTOR_PATH, post_sector, methods=["POST"])
     for method, path, endpoint in ROUTES:
         app.add_api_route(path, endpoint, methods=[method])
-
-
-# ------------------------------------------------------------------------------------------------ OpenAPI
-
-
-REF_TEMPLATE = "#/components/schemas/{name}"
-
-
-def _publish_sector_route(app: FastAPI) -> None:
-    """Puts the sector route (a plain Starlette route, which FastAPI leaves out) in GET /openapi.json, with
-    schemas generated from the contract's msgspec Structs: once, when the document is first asked for."""
-    fastapi_openapi = app.openapi
-
-    def openapi() -> dict[str, Any]:
-        doc = app.openapi_schema
-        if doc is None:
-            doc = fastapi_openapi()  # FastAPI's document, kept in app.openapi_schema (and so is what we add)
-            refs, schemas = msgspec.json.schema_components(
-                [WireSector, WireDetections, JsonDetections, WireError], ref_template=REF_TEMPLATE
-            )
-            doc.setdefault("components", {}).setdefault("schemas", {}).update(schemas)
-            stream_id = schemas["WireSector"]["properties"]["stream_id"]
-            doc["paths"][SECTOR_PATH] = {"post": _sector_operation(stream_id, *refs)}
-        return doc
-
-    app.openapi = openapi  # type: ignore[method-assign]
-
-
-Schema = dict[str, Any]  # a JSON Schema or a piece of the OpenAPI document
-
-
-def _sector_operation(
-    stream_id: Schema, sector: Schema, detections: Schema, json_detections: Schema, error: Schema
-) -> Schema:
-    """The OpenAPI operation of POST SECTOR_PATH, from the JSON Schemas of its messages."""
-
-    def content(msgpack_schema: Schema, json_schema: Schema) -> Schema:
-        return {MSGPACK: {"schema": msgpack_schema}, JSON: {"schema": json_schema}}
-
-    codes: dict[int, list[str]] = {}
-    for code, status in HTTP_STATUS.items():
-        codes.setdefault(status, []).append(code.value)
-    errors = {
-        str(status): {
-            "description": f"WireError, code {' or '.join(names)}",
-            "content": content(error, error),
-        }
-        for status, names in sorted(codes.items())
-    }
-    errors["503"]["headers"] = {
-        "Retry-After": {"description": "seconds (overloaded)", "schema": {"type": "integer"}}
-    }
-    return {
-        "summary": "Run one sector of a stream",
-        "description": (
-            "The body is a sector in msgpack or JSON (Content-Type). The reply is msgpack or JSON by Accept; "
-            "when Accept names neither, in the body's format. Array `data`: msgpack bin; base64 in JSON. "
-            "The JSON reply gives the arrays as lists (JsonDetections)."
-        ),
-        "operationId": "post_sector",
-        "parameters": [{"name": "stream_id", "in": "path", "required": True, "schema": stream_id}],
-        "requestBody": {"required": True, "content": content(sector, sector)},
-        "responses": {
-            "200": {"description": "the detections", "content": content(detections, json_detections)},
-            **errors,
-        },
-    }
