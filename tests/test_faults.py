@@ -39,7 +39,7 @@ def test_thousands_of_idle_streams_are_bounded_and_evicted() -> None:
         WorkerConfig(
             warmup_sectors=1,
             max_streams=n,
-            idle_timeout_s=15.0,
+            idle_timeout_s=600.0,
             max_batch=32,
             queue_size=n,
             deadline_ms=120_000,
@@ -56,7 +56,8 @@ def test_thousands_of_idle_streams_are_bounded_and_evicted() -> None:
         with pytest.raises(ServiceError) as full:
             w.submit(sector_msg("one-more", 0, SMALL)).result(10)
         assert full.value.code is ErrorCode.OVERLOADED and f"max_streams={n}" in full.value.message
-        deadline = time.monotonic() + 60  # the idle timeout: 15 s, longer than filling the table
+        w.table.idle_timeout_s = 1.0  # now let them idle out (filled under a long timeout, however slow)
+        deadline = time.monotonic() + 60
         while w.streams() and time.monotonic() < deadline:
             time.sleep(0.2)
         assert w.streams() == [] and w.metrics.evictions._value.get() == n
