@@ -19,7 +19,6 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -28,14 +27,10 @@ import time
 import urllib.request
 from pathlib import Path
 
+from clients.bench.server import free_port  # the project installed (scripts/setup.sh)
+
 REPO = Path(__file__).resolve().parents[1]
 SECTORS_PER_S = 40  # one vehicle at sensor rate: 10 turns/s x 4 sectors
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def rss_mb(pid: int) -> float:

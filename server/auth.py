@@ -84,9 +84,6 @@ class TokenFile:
         self._reload_if_changed()
         return self._table.get(token_hash(token))
 
-    def __len__(self) -> int:
-        return len(self._table)
-
     def _stat(self) -> tuple[int, int, int]:
         try:
             st = os.stat(self.path)

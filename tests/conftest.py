@@ -76,3 +76,11 @@ def ref_b(det, scan_b) -> list:
     from server_helpers import run_direct
 
     return run_direct(det, scan_b)
+
+
+def rss_bytes() -> int:
+    """This process's resident memory (Linux /proc)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise AssertionError("no VmRSS in /proc/self/status")

@@ -14,6 +14,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from conftest import rss_bytes
 from server_helpers import default_detector, free_port, sector_msg
 
 from clients.base import ClientError
@@ -23,13 +24,6 @@ from server.worker import Worker, WorkerConfig
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = np.random.default_rng(1).uniform(-10, 10, (20, 4)).astype(np.float32)
-
-
-def rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def test_thousands_of_idle_streams_are_bounded_and_evicted() -> None:
@@ -48,10 +42,10 @@ def test_thousands_of_idle_streams_are_bounded_and_evicted() -> None:
     w.start()
     assert w.wait_ready(60), w.status
     try:
-        before = rss_mb()
+        before = rss_bytes()
         futures = [w.submit(sector_msg(f"idle-{i}", 0, SMALL)) for i in range(n)]
         assert all(f.result(120).context_sectors == 1 for f in futures)
-        grown = rss_mb() - before
+        grown = (rss_bytes() - before) / 2**20  # MB
         assert len(w.streams()) == n and grown < 500, grown  # ~n small states, not a leak per stream
         with pytest.raises(ServiceError) as full:
             w.submit(sector_msg("one-more", 0, SMALL)).result(10)

@@ -4,10 +4,9 @@ allocated lazily, and a sector too big for its slot failing alone."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
+from conftest import rss_bytes
 from test_graph_step import assert_same_state
 from test_streaming import assert_same_detections, make_model
 
@@ -128,16 +127,9 @@ def test_slot_memory_is_counted_and_only_used_slots_are_touched(model: PHiM):
     keep = model.cfg.buffer_sectors
     mamba = blocks * di * (cfg.mamba.d_conv - 1 + cfg.mamba.d_state) * 4  # float32 conv and ssm states
     buffer = keep * 4096 * (cfg.d_model * 4 + 2 * 8 + 1)  # feats float32, cols int64 (r, theta), valid
-    rss = _rss_bytes()
+    rss = rss_bytes()
     det = GraphStreamingDetector(model, sector_voxels=4096, slots=300)
     assert det.slots.slot_bytes == mamba + buffer
     assert det.slots.total_bytes == 301 * (mamba + buffer)
     assert det.slots.total_bytes > 400 * 2**20
-    assert _rss_bytes() - rss < 100 * 2**20  # torch.empty: pages of unused slots are never touched
-
-
-def _rss_bytes() -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) * 1024
-    raise AssertionError("no VmRSS in /proc/self/status")
+    assert rss_bytes() - rss < 100 * 2**20  # torch.empty: pages of unused slots are never touched
