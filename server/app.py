@@ -14,7 +14,7 @@ from functools import partial
 from typing import Any, Protocol
 
 from fastapi import FastAPI, Request, Response
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, PlainTextResponse
 from starlette.requests import ClientDisconnect
 
 from contract import (
@@ -38,7 +38,7 @@ from model.graph.engine import Detector, streaming_detector
 from server.auth import Grant, TokenFile
 from server.default_model import init_model, load_default_model
 from server.metrics import Metrics
-from server.openapi import publish_sector_route
+from server.openapi import error_responses, publish_sector_route
 from server.settings import Settings
 from server.warmup import package_version
 from server.worker import Worker
@@ -318,14 +318,18 @@ async def metrics(request: Request) -> Response:
     return Response(m.exposition(), media_type=m.content_type)
 
 
-ROUTES: list[tuple[str, str, Callable[..., Any]]] = [
-    ("DELETE", "/v1/streams/{stream_id}", delete_stream),
-    ("GET", "/v1/streams", list_streams),
-    ("GET", "/v1/streams/{stream_id}", get_stream),
-    ("GET", "/v1/model", get_model),
-    ("GET", "/health/live", live),
-    ("GET", "/health/ready", ready),
-    ("GET", "/metrics", metrics),
+E = ErrorCode
+AUTH = (E.UNAUTHORIZED,)  # with --auth-tokens
+STREAM = (E.UNAUTHORIZED, E.FORBIDDEN, E.INVALID_FIELD, E.UNKNOWN_STREAM)
+# method, path, route, the errors it may answer (the OpenAPI document lists them)
+ROUTES: list[tuple[str, str, Callable[..., Any], tuple[ErrorCode, ...]]] = [
+    ("DELETE", "/v1/streams/{stream_id}", delete_stream, STREAM),
+    ("GET", "/v1/streams", list_streams, AUTH),
+    ("GET", "/v1/streams/{stream_id}", get_stream, STREAM),
+    ("GET", "/v1/model", get_model, AUTH),
+    ("GET", "/health/live", live, (E.INTERNAL,)),
+    ("GET", "/health/ready", ready, (E.NOT_READY,)),
+    ("GET", "/metrics", metrics, AUTH),
 ]
 
 
@@ -336,5 +340,8 @@ def _add_routes(app: FastAPI) -> None:
     # the hot route as a plain Starlette route: FastAPI's parameter handling cost about 0.15 ms per sector
     # (docs/benchmarks.md); `server.openapi.publish_sector_route` adds it to the OpenAPI document
     app.router.add_route(SECTOR_PATH, post_sector, methods=["POST"])
-    for method, path, endpoint in ROUTES:
-        app.add_api_route(path, endpoint, methods=[method])
+    for method, path, endpoint, errors in ROUTES:
+        # /metrics is Prometheus' text format; the other routes answer JSON
+        kind = PlainTextResponse if endpoint is metrics else JSONResponse
+        responses = error_responses(list(errors))
+        app.add_api_route(path, endpoint, methods=[method], responses=responses, response_class=kind)

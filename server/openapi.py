@@ -8,7 +8,16 @@ from typing import Any
 import msgspec
 from fastapi import FastAPI
 
-from contract import HTTP_STATUS, JSON, MSGPACK, JsonDetections, WireDetections, WireError, WireSector
+from contract import (
+    HTTP_STATUS,
+    JSON,
+    MSGPACK,
+    ErrorCode,
+    JsonDetections,
+    WireDetections,
+    WireError,
+    WireSector,
+)
 
 REF_TEMPLATE = "#/components/schemas/{name}"
 
@@ -28,12 +37,37 @@ def publish_sector_route(app: FastAPI, path: str) -> None:
             doc.setdefault("components", {}).setdefault("schemas", {}).update(schemas)
             stream_id = schemas["WireSector"]["properties"]["stream_id"]
             doc["paths"][path] = {"post": _sector_operation(stream_id, *refs)}
+            for operation in (op for ops in doc["paths"].values() for op in ops.values()):
+                for param in operation.get("parameters", []):
+                    if param["name"] == "stream_id":  # FastAPI's says "a string"; the contract's, which
+                        param["schema"] = stream_id  # the routes check
+
         return doc
 
     app.openapi = openapi  # type: ignore[method-assign]
 
 
 Schema = dict[str, Any]  # a JSON Schema or a piece of the OpenAPI document
+WIRE_ERROR: Schema = {"$ref": REF_TEMPLATE.format(name="WireError")}
+
+
+def error_responses(codes: list[ErrorCode], error: Schema = WIRE_ERROR) -> dict[str, Schema]:
+    """The OpenAPI responses of the errors a route may answer: a WireError (JSON or msgpack) per status."""
+    by_status: dict[int, list[str]] = {}
+    for code in codes:
+        by_status.setdefault(HTTP_STATUS[code], []).append(code.value)
+    out = {
+        str(status): {
+            "description": f"WireError, code {' or '.join(names)}",
+            "content": {MSGPACK: {"schema": error}, JSON: {"schema": error}},
+        }
+        for status, names in sorted(by_status.items())
+    }
+    if "503" in out:
+        out["503"]["headers"] = {
+            "Retry-After": {"description": "seconds (overloaded)", "schema": {"type": "integer"}}
+        }
+    return out
 
 
 def _sector_operation(
@@ -44,19 +78,7 @@ def _sector_operation(
     def content(msgpack_schema: Schema, json_schema: Schema) -> Schema:
         return {MSGPACK: {"schema": msgpack_schema}, JSON: {"schema": json_schema}}
 
-    codes: dict[int, list[str]] = {}
-    for code, status in HTTP_STATUS.items():
-        codes.setdefault(status, []).append(code.value)
-    errors = {
-        str(status): {
-            "description": f"WireError, code {' or '.join(names)}",
-            "content": content(error, error),
-        }
-        for status, names in sorted(codes.items())
-    }
-    errors["503"]["headers"] = {
-        "Retry-After": {"description": "seconds (overloaded)", "schema": {"type": "integer"}}
-    }
+    errors = error_responses(list(ErrorCode), error)
     return {
         "summary": "Run one sector of a stream",
         "description": (
