@@ -15,7 +15,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,6 +26,7 @@ import zenoh
 from clients.base import ClientError, DetectorClient, OnSent, RequestTimeout, TransportError, answer
 from clients.http_client import HttpClient
 from clients.zenoh_session import MSGPACK_ENCODING, open_session
+from clients.zenoh_workers import LiveWorkers
 from contract import (
     DEFAULT_KEY_PREFIX,
     DEFAULT_ZENOH_ENDPOINT,
@@ -36,8 +39,10 @@ from contract import (
     encode_sector,
 )
 
+log = logging.getLogger(__name__)
 BLOCK = zenoh.CongestionControl.BLOCK
 Outcome = DetectionsReply | ErrorReply | ClientError
+Held = tuple[zenoh.Reply, Outcome]  # an answer not taken yet, and what it says
 
 
 class NotSupported(ClientError):
@@ -51,13 +56,17 @@ class ZenohClientConfig:
     key_prefix: str = DEFAULT_KEY_PREFIX
     timeout_s: float = 10.0  # per get
     config_file: str | None = None  # a zenoh JSON5 file (TLS, ...); the fields above override it
+    worker: str | None = None  # take answers from this worker ID only (default: any live worker)
     http_url: str | None = None  # the same server's HTTP address, for model_info / end_stream
     token: str | None = None  # the bearer token for http_url
     ca_cert: str | None = None  # the CA (PEM) an https http_url is checked against
 
 
 class ZenohClient(DetectorClient):
-    """The detector over zenoh request/reply. Send one stream's sectors from one client (ordering)."""
+    """The detector over zenoh request/reply. Send one stream's sectors from one client (ordering).
+
+    An answer counts only when it comes from a session that holds a worker's liveliness token (that worker's,
+    when `worker` is set): others are ignored and counted in `ignored_replies` (clients/zenoh_workers.py)."""
 
     transport = "zenoh"
 
@@ -75,6 +84,8 @@ class ZenohClient(DetectorClient):
             raise TransportError(
                 f"zenoh: cannot open a {cfg.mode} session to {list(cfg.connect)}: {e}"
             ) from e
+        self._live = LiveWorkers(self._session, self.keys)
+        self.ignored_replies = 0
         self._http = HttpClient(cfg.http_url, token=cfg.token, ca_cert=cfg.ca_cert) if cfg.http_url else None
 
     # ------------------------------------------------------------------------------------------ sectors
@@ -82,20 +93,66 @@ class ZenohClient(DetectorClient):
     def send(self, msg: SectorMessage) -> DetectionsReply:
         replies = self._session_or_fail().get(self._key(msg), payload=self._body(msg), **self._get_options())
         outcome: Outcome | None = None
-        for reply in replies:  # ends when the worker finalizes the query, or at the timeout
-            if outcome is None:
-                outcome = reply_outcome(reply)
+        held: list[Held] = []
+        for reply in replies:  # ends when every queryable finalized the query, or at the timeout
+            judged, trusted = self._judge(reply)
+            if trusted is None:
+                held.append((reply, judged))
+            elif outcome is None and trusted:
+                outcome = judged
+        if outcome is None and held:
+            outcome = self._recheck(held)
         return _result(outcome, self._key(msg))
 
     async def send_async(self, msg: SectorMessage, on_sent: OnSent | None = None) -> DetectionsReply:
         loop = asyncio.get_running_loop()
-        future: asyncio.Future[Outcome | None] = loop.create_future()
-        pending = _Pending(loop, future)
+        future: asyncio.Future[Outcome | list[Held] | None] = loop.create_future()
+        pending = _Pending(loop, future, self._judge)
         handler = zenoh.handlers.Callback(pending.on_reply, pending.on_done)
         self._session_or_fail().get(self._key(msg), handler, payload=self._body(msg), **self._get_options())
         if on_sent is not None:  # the query is queued on the session: later gets follow it on the link
             on_sent()
-        return _result(await future, self._key(msg))
+        outcome = await future
+        if isinstance(outcome, list):  # no worker's answer, only answers held back
+            outcome = await loop.run_in_executor(None, self._recheck, outcome)
+        return _result(outcome, self._key(msg))
+
+    def _judge(self, reply: zenoh.Reply) -> tuple[Outcome, bool | None]:
+        """A reply's outcome, and whether to take it: True for a worker's answer; False for a worker this
+        client is not pinned to; None (held back until the get ends) for an answer from a session that holds
+        no worker token (yet), and for zenoh's own errors (its b"Timeout" comes when the get ends anyway)."""
+        outcome = reply_outcome(reply)
+        rid = reply.replier_id
+        worker = self._live.worker_at(str(rid.zid)) if rid is not None else None
+        if isinstance(outcome, ClientError) or worker is None:
+            return outcome, None
+        if self.config.worker is not None and worker != self.config.worker:
+            self._ignore(reply, f"worker {worker!r}, not {self.config.worker!r}")
+            return outcome, False
+        return outcome, True
+
+    def _recheck(self, held: list[Held]) -> Outcome | None:
+        """When the get ended without a worker's answer: the first held answer whose session proves to be a
+        worker once the tokens are asked for again; else zenoh's own error (the timeout); else None."""
+        if not all(isinstance(outcome, ClientError) for _, outcome in held):
+            self._live.refresh(min(2.0, self.config.timeout_s))
+        errors: list[Outcome] = []
+        for reply, outcome in held:
+            if isinstance(outcome, ClientError):
+                errors.append(outcome)
+                continue
+            trusted = self._judge(reply)[1]
+            if trusted:
+                return outcome
+            if trusted is None:
+                self._ignore(reply, "a session that holds no worker token")
+        return errors[0] if errors else None
+
+    def _ignore(self, reply: zenoh.Reply, why: str) -> None:
+        with self._lock:
+            self.ignored_replies += 1
+        rid = reply.replier_id
+        log.warning("zenoh: ignored an answer from %s: %s", rid.zid if rid is not None else "?", why)
 
     def _key(self, msg: SectorMessage) -> str:
         return self.keys.sector(msg.stream_id)
@@ -108,7 +165,14 @@ class ZenohClient(DetectorClient):
         return encode_sector(msg)
 
     def _get_options(self) -> dict[str, Any]:
-        return {"encoding": MSGPACK_ENCODING, "congestion_control": BLOCK, "timeout": self.config.timeout_s}
+        # every reply reaches the client as it comes (zenoh's default consolidation would keep one per key,
+        # the latest: a rogue's late answer would replace the worker's before the client could judge it)
+        return {
+            "encoding": MSGPACK_ENCODING,
+            "congestion_control": BLOCK,
+            "consolidation": zenoh.ConsolidationMode.NONE,
+            "timeout": self.config.timeout_s,
+        }
 
     # ------------------------------------------------------------------------------------------ control
 
@@ -127,10 +191,10 @@ class ZenohClient(DetectorClient):
         return self._http.model_info()
 
     def workers(self, timeout_s: float = 2.0) -> list[str]:
-        """The IDs of the live workers under this prefix (their liveliness tokens)."""
-        head = self.keys.worker("")
-        tokens = self._session_or_fail().liveliness().get(self.keys.worker("*"), timeout=timeout_s)
-        return sorted(str(r.ok.key_expr)[len(head) :] for r in tokens if r.ok is not None)
+        """The IDs of the live workers under this prefix (their liveliness tokens), asked for now."""
+        self._session_or_fail()
+        self._live.refresh(timeout_s)
+        return self._live.ids()
 
     def _session_or_fail(self) -> zenoh.Session:
         if self._session is None:
@@ -142,6 +206,7 @@ class ZenohClient(DetectorClient):
             self._http.close()
         if self._session is not None:
             session, self._session = self._session, None
+            self._live.close()
             session.close()
 
 
@@ -172,18 +237,29 @@ def _result(outcome: Outcome | None, key: str) -> DetectionsReply:
 
 
 class _Pending:
-    """The callback side of one async get: runs on zenoh's thread, touches only the future's loop."""
+    """The callback side of one async get: runs on zenoh's thread, touches only the future's loop. The
+    future gets the first worker's answer; else, when the get ends, what was held back (a list), or None."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, future: asyncio.Future[Outcome | None]):
+    def __init__(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        future: asyncio.Future[Outcome | list[Held] | None],
+        judge: Callable[[zenoh.Reply], tuple[Outcome, bool | None]],
+    ):
         self.loop = loop
         self.future = future
+        self.judge = judge
         self.answered = False
+        self.held: list[Held] = []
         self._lock = threading.Lock()  # zenoh may call on_reply and on_done from different threads
 
     def on_reply(self, reply: zenoh.Reply) -> None:
-        outcome = reply_outcome(reply)
+        outcome, trusted = self.judge(reply)
         with self._lock:
-            if self.answered:
+            if self.answered or trusted is False:
+                return
+            if trusted is None:
+                self.held.append((reply, outcome))
                 return
             self.answered = True
             self._resolve(outcome)
@@ -192,13 +268,13 @@ class _Pending:
         with self._lock:
             if not self.answered:
                 self.answered = True
-                self._resolve(None)
+                self._resolve(self.held or None)
 
-    def _resolve(self, outcome: Outcome | None) -> None:
+    def _resolve(self, outcome: Outcome | list[Held] | None) -> None:
         with contextlib.suppress(RuntimeError):  # a closed loop: nobody waits for this answer any more
             self.loop.call_soon_threadsafe(_set, self.future, outcome)
 
 
-def _set(future: asyncio.Future[Outcome | None], outcome: Outcome | None) -> None:
+def _set(future: asyncio.Future[Outcome | list[Held] | None], outcome: Outcome | list[Held] | None) -> None:
     if not future.done():
         future.set_result(outcome)

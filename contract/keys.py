@@ -38,8 +38,16 @@ class KeySpace:
     def errors(self, stream_id: str) -> str:
         return f"{self.prefix}/streams/{stream_id}/errors"
 
-    def worker(self, worker_id: str) -> str:
-        return f"{self.prefix}/workers/{worker_id}"
+    def worker(self, worker_id: str, zid: str = "*") -> str:
+        """A worker's liveliness token: its ID, then the ID of its zenoh session (the `replier_id` of its
+        answers, which is how a client knows an answer came from a worker and from which)."""
+        return f"{self.prefix}/workers/{worker_id}/{zid}"
+
+    def worker_of(self, key: str) -> tuple[str, str] | None:
+        """(worker ID, zenoh session ID) of a worker's token key; None for a key of another shape."""
+        head = f"{self.prefix}/workers/"
+        parts = key[len(head) :].split("/") if key.startswith(head) else []
+        return (parts[0], parts[1]) if len(parts) == 2 else None
 
     def stream_id_of(self, key: str) -> str:
         """The stream-ID chunk of `{prefix}/streams/{id}/...` ('' if the key has another shape)."""

@@ -35,6 +35,7 @@ COMMANDS: dict[str, Entry | Group] = {
     "loadtest": Entry(
         "clients.cli:loadtest", "Simulated vehicles streaming to a server: throughput, latency."
     ),
+    "router": Entry("server.router_cli:router_cmd", "A zenoh router where workers and vehicles meet."),
     "replay": Entry("clients.cli:replay", "Stream a recorded drive to a server and write its detections."),
     "sim": Entry("model.data.sim.cli:sim_cmd", "Simulate one LiDAR turn through a random street scene."),
     "train": Entry("model.train.cli:train_cmd", "Train a model (streaming, as the paper trains)."),

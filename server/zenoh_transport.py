@@ -107,7 +107,7 @@ class _Job:
 
 class ZenohTransport:
     """Queryable `{prefix}/streams/*/sector`, subscriber `{prefix}/streams/*/sectors`, liveliness token
-    `{prefix}/workers/{worker_id}`; results on `.../{id}/detections`, errors on `.../{id}/errors`."""
+    `{prefix}/workers/{worker_id}/{zid}`; results on `.../{id}/detections`, errors on `.../{id}/errors`."""
 
     def __init__(
         self,
@@ -155,7 +155,7 @@ class ZenohTransport:
                 self._thread(self._receive_queries, "queries", self._queryable.handler),
                 self._thread(self._receive_samples, "samples", self._subscriber.handler),
             ]
-            self._token = session.liveliness().declare_token(self.keys.worker(self.worker_id))
+            self._token = session.liveliness().declare_token(self.token_key)
         except BaseException:
             self.close(drain_timeout_s=0.0)
             raise
@@ -164,8 +164,14 @@ class ZenohTransport:
             self.worker_id,
             self.keys.sector_queryable,
             self.keys.sector_subscriber,
-            self.keys.worker(self.worker_id),
+            self.token_key,
         )
+
+    @property
+    def token_key(self) -> str:
+        """The worker's liveliness token: `{prefix}/workers/{worker_id}/{zenoh session ID}`."""
+        assert self._session is not None
+        return self.keys.worker(self.worker_id, str(self._session.zid()))
 
     def close(self, drain_timeout_s: float = 10.0) -> None:
         """Withdraw the token, stop taking sectors, send every answer still due (sectors not settled within

@@ -1,28 +1,38 @@
-"""Faults with real parts: thousands of idle streams (bounded, evicted, the limit's clear error) and a worker
-killed with SIGKILL under load (every client call ends with an error within its timeout, none hangs)."""
+"""Faults with real parts: thousands of idle streams (bounded, evicted, the limit's clear error), a worker
+killed with SIGKILL under load (every client call ends with an error within its timeout, none hangs), and
+a zenoh router killed and restarted (errors while it is down, everyone reconnects), and a slow pub/sub
+consumer (nobody else waits for it)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
 import time
+from concurrent.futures import Future
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
 import pytest
+import zenoh
 from conftest import rss_bytes
-from server_helpers import default_detector, free_port, sector_msg
+from server_helpers import default_detector, free_endpoint, free_port, sector_msg
 
 from clients.base import ClientError
 from clients.connect import ConnectConfig, Transport, make_client
-from contract import ErrorCode, ServiceError
+from clients.zenoh_client import ZenohClient
+from contract import DetectionsReply, ErrorCode, KeySpace, Limits, SectorMessage, ServiceError, encode_sector
 from server.worker import Worker, WorkerConfig
+from server.zenoh_transport import MSGPACK_ENCODING, ZenohConfig, ZenohTransport, open_session
 
 REPO = Path(__file__).resolve().parents[1]
+KEYS = KeySpace()
 SMALL = np.random.default_rng(1).uniform(-10, 10, (20, 4)).astype(np.float32)
 
 
@@ -116,3 +126,130 @@ def test_a_killed_worker_gives_every_client_call_an_error_within_its_timeout(tmp
             server.kill()
         server.wait(30)
         log.close()
+
+
+def start_router(endpoint: str, log: Any) -> subprocess.Popen[bytes]:
+    """`phim router` on `endpoint`, once it accepts connections."""
+    router = subprocess.Popen(
+        [sys.executable, "-m", "phim", "router", "--listen", endpoint], cwd=REPO, stdout=log, stderr=log
+    )
+    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+    deadline = time.monotonic() + 60
+    while True:
+        assert router.poll() is None and time.monotonic() < deadline, "the router did not start"
+        with contextlib.suppress(OSError), socket.create_connection((host, int(port)), timeout=1):
+            return router
+        time.sleep(0.1)
+
+
+def test_a_router_restart_errors_what_was_in_flight_and_everyone_reconnects(tmp_path: Path) -> None:
+    """Worker and vehicle are both clients of `phim router`. SIGKILL the router: the sector in flight and
+    the sectors sent while it is down end with an error within the client's timeout; the router comes back
+    on the same endpoint: both sessions reconnect by themselves, the worker is seen again and the stream
+    goes on where it was (its state lived in the worker)."""
+    endpoint, timeout_s = free_endpoint(), 2.0
+    log = (tmp_path / "router.log").open("w")
+    router = start_router(endpoint, log)
+    worker = Worker(lambda: (default_detector(), "test"), WorkerConfig(worker_id="w-rr", warmup_sectors=1))
+    worker.start()
+    assert worker.wait_ready(120), worker.status
+    arrived, release = threading.Event(), threading.Event()
+
+    def submit(msg: SectorMessage) -> Future[DetectionsReply]:
+        if msg.seq == 1:  # held in the worker while the router dies
+            arrived.set()
+            release.wait(10)
+        return worker.submit(msg)
+
+    joined = ZenohConfig(mode="client", listen=(), connect=(endpoint,))
+    transport = ZenohTransport(submit, joined, worker.worker_id, Limits())
+    transport.start()
+    try:
+        with ZenohClient(connect=(endpoint,), timeout_s=timeout_s) as car:
+            assert car.send(sector_msg("rr-1", 0, SMALL)).cold_start
+            errors: list[tuple[BaseException, float]] = []
+
+            def in_flight() -> None:
+                t0 = time.monotonic()
+                try:
+                    car.send(sector_msg("rr-1", 1, SMALL))
+                except ClientError as e:
+                    errors.append((e, time.monotonic() - t0))
+
+            sender = threading.Thread(target=in_flight, daemon=True)
+            sender.start()
+            assert arrived.wait(10)
+            router.send_signal(signal.SIGKILL)
+            router.wait(10)
+            release.set()
+            sender.join(timeout_s + 5)
+            assert len(errors) == 1 and errors[0][1] <= timeout_s + 1.0, errors
+            for seq in (2, 3):  # while the router is down
+                t0 = time.monotonic()
+                with pytest.raises(ClientError):
+                    car.send(sector_msg("rr-1", seq, SMALL))
+                assert time.monotonic() - t0 <= timeout_s + 1.0
+            router = start_router(endpoint, log)
+            back = time.monotonic()
+            while car.workers(timeout_s=1.0) != ["w-rr"]:
+                assert time.monotonic() - back < 30, "the sessions did not come back"
+                time.sleep(0.2)
+            reply = car.send(sector_msg("rr-1", 4, SMALL))
+            assert not reply.cold_start and reply.context_sectors > 1, reply
+            print(f"router back: worker seen again after {time.monotonic() - back:.1f} s")
+    finally:
+        transport.close(10)
+        worker.close(10)
+        router.kill()
+        router.wait(10)
+        log.close()
+
+
+def test_a_slow_pub_sub_consumer_harms_no_other_stream() -> None:
+    """A vehicle puts 120 sectors at once and reads its answers slowly (50 ms each, in its subscriber's
+    callback). Meanwhile another vehicle's request/reply sectors are answered as fast as before, and the
+    slow one still gets exactly one answer per sector (the queue holds them all: this is about reading)."""
+    n, endpoint = 120, free_endpoint()
+    cfg = WorkerConfig(worker_id="w-slow", warmup_sectors=1, queue_size=n + 64, deadline_ms=60_000)
+    worker = Worker(lambda: (default_detector(), "test"), cfg)
+    worker.start()
+    assert worker.wait_ready(120), worker.status
+    transport = ZenohTransport(worker.submit, ZenohConfig(listen=(endpoint,)), worker.worker_id, Limits())
+    transport.start()
+    joined = ZenohConfig(mode="client", listen=(), connect=(endpoint,))
+    answers: list[str] = []
+
+    def read_slowly(sample: zenoh.Sample) -> None:
+        answers.append(str(sample.key_expr).rsplit("/", 1)[1])
+        time.sleep(0.05)
+
+    try:
+        with open_session(joined) as slow, ZenohClient(connect=(endpoint,), timeout_s=10) as car:
+            before = [_timed(car, "fast-1", seq) for seq in range(10)]
+            subs = [
+                slow.declare_subscriber(key, read_slowly)
+                for key in (KEYS.detections("slow-1"), KEYS.errors("slow-1"))
+            ]
+            time.sleep(0.3)
+            for seq in range(n):
+                body = encode_sector(sector_msg("slow-1", seq, SMALL))
+                slow.put(KEYS.sectors("slow-1"), body, encoding=MSGPACK_ENCODING)
+            during = [_timed(car, "fast-1", seq) for seq in range(10, 40)]
+            assert len(answers) < n  # the slow reader is still behind
+            assert max(during) < max(1.0, 10 * max(before)), (before, during)
+            deadline = time.monotonic() + 60
+            while len(answers) < n and time.monotonic() < deadline:
+                time.sleep(0.1)
+            time.sleep(0.5)
+            assert answers == ["detections"] * n, answers.count("errors")
+            for sub in subs:
+                sub.undeclare()
+    finally:
+        transport.close(10)
+        worker.close(10)
+
+
+def _timed(client: ZenohClient, stream: str, seq: int) -> float:
+    t0 = time.monotonic()
+    client.send(sector_msg(stream, seq, SMALL))
+    return time.monotonic() - t0

@@ -290,8 +290,9 @@ def wait_until(condition: Callable[[], bool], timeout_s: float = GET_TIMEOUT_S) 
 
 
 def live_workers(client: zenoh.Session) -> list[str]:
-    replies = client.liveliness().get("phim/v1/workers/*", timeout=2.0)
-    return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+    """The workers' token keys without the session ID: `phim/v1/workers/{worker_id}`."""
+    replies = client.liveliness().get("phim/v1/workers/*/*", timeout=2.0)
+    return [str(r.ok.key_expr).rsplit("/", 1)[0] for r in replies if r.ok is not None]
 
 
 def test_liveliness_token_visible_until_close(worker: Worker) -> None:

@@ -1,0 +1,46 @@
+"""`phim router`: a zenoh router (eclipse-zenoh in router mode, what zenohd runs without its plugins) where
+workers (`phim serve --zenoh-mode client --zenoh-connect EP`) and vehicles meet. No REST plugin, no
+storage: it only routes. Runs until SIGTERM or SIGINT."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from pathlib import Path
+
+import click
+
+from contract import DEFAULT_ZENOH_ENDPOINT
+from server.zenoh_transport import ZenohConfig, open_session
+
+log = logging.getLogger("phim.router")
+
+
+@click.command("router")
+@click.option(
+    "--listen",
+    default=DEFAULT_ZENOH_ENDPOINT,
+    show_default=True,
+    help="Comma-separated endpoints to listen on (tcp/HOST:PORT, tls/HOST:PORT).",
+)
+@click.option(
+    "--config-file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="A zenoh JSON5 file (TLS, user/password, ACL: deploy/zenoh/); --listen overrides its endpoints.",
+)
+def router_cmd(listen: str, config_file: Path | None) -> None:
+    """Route zenoh between workers and vehicles until SIGTERM/SIGINT."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    endpoints = tuple(e.strip() for e in listen.split(",") if e.strip())
+    cfg = ZenohConfig(
+        mode="router", listen=endpoints, config_file=None if config_file is None else str(config_file)
+    )
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    session = open_session(cfg)
+    log.info("zenoh router %s listening on %s", session.zid(), ",".join(endpoints))
+    stop.wait()
+    session.close()
+    log.info("zenoh router stopped")
