@@ -25,3 +25,23 @@ def tune_malloc() -> bool:
         return False
     log.debug("mallopt applied: %s", bool(ok))
     return bool(ok)
+
+
+class _MallInfo2(ctypes.Structure):  # glibc's struct mallinfo2 (glibc >= 2.33), every field a size_t
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks")
+    ] + [("fordblks", ctypes.c_size_t), ("keepcost", ctypes.c_size_t)]
+
+
+def heap_bytes() -> tuple[int, int] | None:
+    """glibc malloc's heap, all arenas: (bytes in allocated chunks, mmapped ones included; bytes in free
+    chunks it keeps). RSS holds both: a flat first number with a growing RSS is the allocator keeping freed
+    memory (tune_malloc's trim threshold), not a leak. None without glibc's mallinfo2."""
+    try:
+        mallinfo2 = ctypes.CDLL(None).mallinfo2
+    except (OSError, AttributeError):
+        return None
+    mallinfo2.restype = _MallInfo2
+    info = mallinfo2()
+    return info.uordblks + info.hblkhd, info.fordblks

@@ -7,8 +7,9 @@
 3. runs open-loop vehicles at `--factor` x that rate, split over the two transports (one `phim loadtest`
    each, concurrently), sampling the server's RSS every second;
 4. checks: every sector answered exactly once (detections or an explicit overload/deadline error: none lost),
-   the RSS slope over the second half (MB/min, least squares) under `--max-rss-slope`, and, once the idle
-   timeout has passed, no live streams left;
+   the slopes over the second half (MB/min, least squares) of the RSS under `--max-rss-slope` and of the
+   heap in use (`phim_heap_in_use_bytes` in /metrics: a leak grows it; the RSS also holds what malloc keeps
+   freed) under `--max-heap-slope`, and, once the idle timeout has passed, no live streams left;
 5. prints a table, writes `--out` (JSON) if given, exits 1 when a check failed.
 """
 
@@ -37,6 +38,15 @@ def rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
+    return math.nan
+
+
+def heap_mb(url: str) -> float:
+    """The server's malloc'd bytes in use (`phim_heap_in_use_bytes` in /metrics, glibc only), in MB."""
+    with urllib.request.urlopen(f"{url}/metrics", timeout=10) as r:
+        for line in r.read().decode().splitlines():
+            if line.startswith("phim_heap_in_use_bytes "):
+                return float(line.split()[1]) / 2**20
     return math.nan
 
 
@@ -91,13 +101,13 @@ def run(duration_s: float, factor: float, idle_s: float) -> dict:
         capacity = json.loads(probe.read_text())["peak_achieved_sectors_per_s"]
         vehicles = max(2, math.ceil(factor * capacity / SECTORS_PER_S))
         split = {"http": (vehicles + 1) // 2, "zenoh": vehicles // 2}
-        samples: list[tuple[float, float]] = []
+        samples: list[tuple[float, float, float]] = []  # seconds, RSS MB, heap in use MB
         done = threading.Event()
 
         def sample() -> None:
             t0 = time.monotonic()
             while not done.wait(1.0):
-                samples.append((time.monotonic() - t0, rss_mb(server.pid)))
+                samples.append((time.monotonic() - t0, rss_mb(server.pid), heap_mb(url)))
 
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
@@ -117,6 +127,7 @@ def run(duration_s: float, factor: float, idle_s: float) -> dict:
         time.sleep(idle_s + 3)  # idle eviction
         live = get_json(f"{url}/v1/streams")["live"]
         half = [s for s in samples if s[0] >= samples[-1][0] / 2] if samples else []
+        first, last = samples[0] if samples else (math.nan,) * 3, samples[-1] if samples else (math.nan,) * 3
         return {
             "duration_s": duration_s,
             "capacity_sectors_per_s": capacity,
@@ -126,9 +137,12 @@ def run(duration_s: float, factor: float, idle_s: float) -> dict:
                 t: {k: r.get(k) for k in ("sent", "answered", "ok", "errors", "lost", "errors_by_code")}
                 for t, r in reports.items()
             },
-            "rss_mb_start": samples[0][1] if samples else math.nan,
-            "rss_mb_end": samples[-1][1] if samples else math.nan,
-            "rss_slope_mb_per_min": round(slope_mb_per_min(half), 2),
+            "rss_mb_start": first[1],
+            "rss_mb_end": last[1],
+            "rss_slope_mb_per_min": round(slope_mb_per_min([(t, r) for t, r, _ in half]), 2),
+            "heap_mb_start": round(first[2], 1),
+            "heap_mb_end": round(last[2], 1),
+            "heap_slope_mb_per_min": round(slope_mb_per_min([(t, h) for t, _, h in half]), 2),
             "live_streams_after_idle": live,
         }
     finally:
@@ -146,6 +160,9 @@ def main() -> int:
     parser.add_argument("--factor", type=float, default=2.0, help="Offered load over the measured ceiling.")
     parser.add_argument("--idle-timeout", type=float, default=5.0, help="The server's idle eviction (s).")
     parser.add_argument("--max-rss-slope", type=float, default=20.0, help="MB/min over the second half.")
+    parser.add_argument(
+        "--max-heap-slope", type=float, default=5.0, help="Heap in use, MB/min over the second half."
+    )
     parser.add_argument("--out", type=Path, help="Write the result as JSON.")
     a = parser.parse_args()
     result = run(a.duration, a.factor, a.idle_timeout)
@@ -155,6 +172,8 @@ def main() -> int:
             for r in result["reports"].values()
         ),
         "RSS flat": result["rss_slope_mb_per_min"] <= a.max_rss_slope,
+        # nan (no glibc) fails: say --max-heap-slope inf on such a machine
+        "heap in use flat": result["heap_slope_mb_per_min"] <= a.max_heap_slope,
         "no live streams after idle": result["live_streams_after_idle"] == 0,
     }
     result["checks"] = checks
@@ -165,12 +184,12 @@ def main() -> int:
     for t, r in result["reports"].items():
         cells = [t, result["vehicles"][t], *(r[k] for k in ("sent", "answered", "ok", "errors", "lost"))]
         print("| " + " | ".join(str(c) for c in cells) + " |")
+    r = result
     print(
-        f"\nceiling {result['capacity_sectors_per_s']:.1f} sectors/s, offered x{a.factor:g} "
-        f"for {a.duration:g} s; "
-        f"RSS {result['rss_mb_start']:.0f} -> {result['rss_mb_end']:.0f} MB, slope "
-        f"{result['rss_slope_mb_per_min']} MB/min (second half); live streams after idle: "
-        f"{result['live_streams_after_idle']}"
+        f"\nceiling {r['capacity_sectors_per_s']:.1f} sectors/s, offered x{a.factor:g} for {a.duration:g} s; "
+        f"RSS {r['rss_mb_start']:.0f} -> {r['rss_mb_end']:.0f} MB, slope {r['rss_slope_mb_per_min']} MB/min "
+        f"(second half); heap in use {r['heap_mb_start']:.0f} -> {r['heap_mb_end']:.0f} MB, slope "
+        f"{r['heap_slope_mb_per_min']} MB/min; live streams after idle: {r['live_streams_after_idle']}"
     )
     for name, ok in checks.items():
         print(f"{'PASS' if ok else 'FAIL'}: {name}")

@@ -29,6 +29,8 @@ from prometheus_client import (
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 
+from phim.process import heap_bytes
+
 log = logging.getLogger(__name__)
 
 # A sensor sends a sector every 25 ms: every 2.5 ms from 5 to 40 ms, sparser below and beyond, up to 10 s
@@ -54,6 +56,8 @@ class Metrics:
         ProcessCollector(registry=r)  # process_cpu_seconds_total, process_resident_memory_bytes, ...
         PlatformCollector(registry=r)  # python_info
         GCCollector(registry=r)  # python_gc_*
+        if heap_bytes() is not None:
+            r.register(HeapCollector())  # phim_heap_*: what of the RSS the allocator holds, used or free
         self.build_info = Info("phim_build", "The served model: " + ", ".join(BUILD_LABELS), registry=r)
         self.sectors = Counter(
             "phim_sectors",
@@ -108,6 +112,18 @@ class Metrics:
 
     def exposition(self) -> bytes:
         return generate_latest(self.registry)
+
+
+class HeapCollector(Collector):
+    """glibc malloc's heap at scrape time (phim.process.heap_bytes): in use, and free but kept."""
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        heap = heap_bytes()
+        if heap is None:
+            return
+        used, free = heap
+        yield GaugeMetricFamily("phim_heap_in_use_bytes", "malloc'd and not yet freed (glibc)", value=used)
+        yield GaugeMetricFamily("phim_heap_free_bytes", "freed, kept by malloc for reuse (glibc)", value=free)
 
 
 class GpuCollector(Collector):

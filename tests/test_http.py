@@ -323,6 +323,29 @@ def test_a_client_leaving_mid_body_is_no_error(server, caplog: pytest.LogCapture
     assert not errors, [r.getMessage() for r in errors]
 
 
+def test_a_client_leaving_while_its_sector_runs_leaves_the_stream_consistent(det, monkeypatch, scan, caplog):
+    """A client sends a whole sector and closes the connection while its forward runs: the sector still
+    counts for its stream (the next seq goes on with it as context, the same seq is stale), nothing stays
+    queued, and nothing is logged as an error."""
+    import socket
+
+    small = scan[0][::8]
+    with serve(det) as s, caplog.at_level("DEBUG"):
+        gate = StepGate.install(det, monkeypatch)
+        host, port = s.url.removeprefix("http://").split(":")
+        body = encode_sector(sector_msg("left", 0, small))
+        head = "POST /v1/streams/left/sectors HTTP/1.1\r\nHost: x\r\nContent-Type: application/msgpack\r\n"
+        with socket.create_connection((host, int(port)), timeout=10) as sock:
+            sock.sendall(f"{head}Content-Length: {len(body)}\r\n\r\n".encode() + body)
+            assert gate.entered.wait(30)  # its forward runs, and the client goes
+        gate.release()
+        wait_for(lambda: metric(s.url, "phim_queued_sectors") == 0)
+        assert detections(post(s.url, "left", 1, small)).context_sectors == 2
+        assert post(s.url, "left", 0, small).status_code == 409
+    errors = [r for r in caplog.records if r.levelno >= 40]
+    assert not errors, [r.getMessage() for r in errors]
+
+
 def test_connections_that_stall_are_closed_and_a_slow_honest_one_is_served(det, caplog):
     """Read deadlines (server/http_protocol.py): a connection that sends nothing, half its headers or half
     its body is closed once its deadline passes (before: held open for good); a body sent in slow chunks

@@ -40,6 +40,8 @@ PHIM_FAMILIES = {  # name (as the parser gives it: a counter's without `_total`)
     "phim_model_latency_seconds": "histogram",
     "phim_sector_latency_seconds": "histogram",
     "phim_ready": "gauge",
+    "phim_heap_in_use_bytes": "gauge",  # glibc
+    "phim_heap_free_bytes": "gauge",
 }
 GPU_FAMILIES = ("memory_allocated_bytes", "memory_reserved_bytes", "memory_total_bytes", "utilization_ratio")
 LATENCIES = ("phim_queue_latency_seconds", "phim_model_latency_seconds", "phim_sector_latency_seconds")
@@ -115,6 +117,8 @@ def test_process_and_python_metrics(scraped):
     (py,) = samples(families, "python_info")
     assert py.labels["implementation"] == "CPython"
     assert len(samples(families, "python_gc_collections", "python_gc_collections_total")) == 3
+    used, free = value(families, "phim_heap_in_use_bytes"), value(families, "phim_heap_free_bytes")
+    assert 10e6 < used < value(families, "process_resident_memory_bytes") and free >= 0  # glibc here
 
 
 def test_latency_buckets_are_dense_around_the_sensor_period(scraped):

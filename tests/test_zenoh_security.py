@@ -115,6 +115,45 @@ def test_a_vehicle_cannot_pose_as_a_worker(hub):
         token.undeclare()
 
 
+def test_behind_a_router_only_workers_serve(worker: Worker, tmp_path: Path):
+    """router-mtls-acl.json5 on a router; the worker joins it with its own certificate (worker-1), the
+    vehicles with theirs. Each vehicle reaches its own stream only, and a vehicle that declares the sector
+    queryable and a worker token reaches nobody: the router's ACL lets only workers serve."""
+    certs = make_certs(tmp_path / "certs", "car-1,car-2,worker-1")
+    endpoint = f"tls/localhost:{free_port()}"
+    router = ZenohConfig(
+        mode="router", listen=(endpoint,), config_file=sample("router-mtls-acl.json5", certs, tmp_path)
+    )
+    joined = ZenohConfig(
+        mode="client",
+        listen=(),
+        connect=(endpoint,),
+        config_file=sample("vehicle-mtls.json5", certs, tmp_path, "worker-1"),
+    )
+    with open_session(router):
+        transport = ZenohTransport(worker.submit, joined, worker.worker_id, Limits())
+        transport.start()
+        hub = (endpoint, certs, tmp_path)
+        try:
+            with vehicle(hub, "car-1") as car1, vehicle(hub, "car-2") as car2:
+                assert car1.send(sector_msg("car-1", 2000, POINTS)).seq == 2000
+                with pytest.raises(TransportError, match="no worker answered"):
+                    car1.send(sector_msg("car-2", 2000, POINTS))
+                rogue = car1._session_or_fail()
+                asked: list[str] = []
+                forged = rogue.declare_queryable(
+                    KEYS.sector_queryable, lambda q: asked.append(str(q.key_expr))
+                )
+                token = rogue.liveliness().declare_token(KEYS.worker("fake", str(rogue.zid())))
+                time.sleep(0.5)
+                assert car2.send(sector_msg("car-2", 2000, POINTS)).seq == 2000
+                assert not asked and car2.workers() == ["w-tls"]
+                forged.undeclare()
+                token.undeclare()
+        finally:
+            transport.close(10)
+
+
 def test_user_and_password_with_the_acl(worker: Worker, tmp_path: Path):
     """worker-usrpwd-acl.json5: TLS with the worker's certificate only, a user name and password per vehicle
     (the dictionary file), the ACL by user name. The right password reaches its own stream only; a wrong
@@ -129,10 +168,10 @@ def test_user_and_password_with_the_acl(worker: Worker, tmp_path: Path):
 
     with listening(worker, endpoint, sample("worker-usrpwd-acl.json5", certs, tmp_path)):
         with car("car-1", "secret-1") as car1, car("car-2", "secret-2") as car2:
-            assert isinstance(car1.send(sector_msg("car-1", 1000, POINTS)), DetectionsReply)
+            assert isinstance(car1.send(sector_msg("car-1", 9000, POINTS)), DetectionsReply)
             with pytest.raises(TransportError, match="no worker answered"):
-                car1.send(sector_msg("car-2", 1000, POINTS))
-            assert car2.send(sector_msg("car-2", 1000, POINTS)).seq == 1000  # not taken by car-1's
+                car1.send(sector_msg("car-2", 9000, POINTS))
+            assert car2.send(sector_msg("car-2", 9000, POINTS)).seq == 9000  # not taken by car-1's
         for identity, password in (("car-1", "secret-2"), ("car-3", "secret-1")):
             with pytest.raises(TransportError, match="cannot open"):
                 car(identity, password)

@@ -71,10 +71,17 @@ class LoadTestReport:
         return sum(s.lost_by_reason.get(Lost.TRANSPORT.value, 0) for s in self.steps)
 
     @property
+    def refused(self) -> int:
+        """Sectors the server refused for their token (unauthorized, forbidden): nothing measured for them."""
+        return sum(s.errors_by_code.get(c, 0) for s in self.steps for c in ("unauthorized", "forbidden"))
+
+    @property
     def exit_code(self) -> int:
         """1 when thresholds are enforced and the run did not pass, or when sectors were lost to transport
-        failures (with or without thresholds: the server was not there to measure), else 0."""
-        return int((self.config.thresholds.enforced and not self.passed) or self.unreachable > 0)
+        failures or refused for their token (with or without thresholds: there was nothing to measure),
+        else 0."""
+        unmeasured = self.unreachable > 0 or self.refused > 0
+        return int((self.config.thresholds.enforced and not self.passed) or unmeasured)
 
     @property
     def peak_step(self) -> StepResult:
@@ -126,6 +133,7 @@ def to_json(report: LoadTestReport) -> dict[str, Any]:
             "passed": report.passed,
             "exit_code": report.exit_code,
             "lost_to_transport": report.unreachable,
+            "refused_by_auth": report.refused,
             "max_vehicles_held": report.max_vehicles_held,
             "peak_achieved_sectors_per_s": report.peak_step.achieved_sectors_per_s,
             "peak_vehicles": report.peak_step.vehicles,
@@ -233,4 +241,6 @@ def _thresholds_line(report: LoadTestReport) -> str:
     line = f"Thresholds: {', '.join(limits) or 'none'}; {verdict}, {how}."
     if report.unreachable:
         line += f"\n{report.unreachable} sectors lost to transport failures (server gone?): exit code 1."
+    if report.refused:
+        line += f"\n{report.refused} sectors refused for their token (--token? --stream-prefix?): exit 1."
     return line
