@@ -27,11 +27,11 @@ def tune_malloc() -> bool:
     return bool(ok)
 
 
-class _MallInfo2(ctypes.Structure):  # glibc's struct mallinfo2 (glibc >= 2.33), every field a size_t
-    _fields_ = [
-        (name, ctypes.c_size_t)
-        for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks")
-    ] + [("fordblks", ctypes.c_size_t), ("keepcost", ctypes.c_size_t)]
+_MALLINFO2 = ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks")
+
+
+class _MallInfo2(ctypes.Structure):  # glibc's struct mallinfo2 (glibc >= 2.33): size_t fields
+    _fields_ = [(name, ctypes.c_size_t) for name in (*_MALLINFO2, "keepcost")]
 
 
 def heap_bytes() -> tuple[int, int] | None:

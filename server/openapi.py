@@ -41,7 +41,6 @@ def publish_sector_route(app: FastAPI, path: str) -> None:
                 for param in operation.get("parameters", []):
                     if param["name"] == "stream_id":  # FastAPI's says "a string"; the contract's, which
                         param["schema"] = stream_id  # the routes check
-
         return doc
 
     app.openapi = openapi  # type: ignore[method-assign]

@@ -10,6 +10,7 @@ import threading
 from pathlib import Path
 
 import click
+import zenoh
 
 from contract import DEFAULT_ZENOH_ENDPOINT
 from server.zenoh_transport import ZenohConfig, open_session
@@ -39,7 +40,10 @@ def router_cmd(listen: str, config_file: Path | None) -> None:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    session = open_session(cfg)
+    try:
+        session = open_session(cfg)
+    except zenoh.ZError as e:
+        raise click.ClickException(f"zenoh router on {','.join(endpoints)}: {e}") from e
     log.info("zenoh router %s listening on %s", session.zid(), ",".join(endpoints))
     stop.wait()
     session.close()

@@ -18,7 +18,7 @@ import uvicorn
 from conftest import kitti_scan
 
 from clients.bench.server import free_port
-from contract import MSGPACK, SectorMessage, encode_sector
+from contract import MSGPACK, DetectionsReply, SectorMessage, decode_response, encode_sector
 from model.config import tiny
 from model.detector import PHiM
 from model.graph.engine import Detector
@@ -180,3 +180,26 @@ def serve(det: Detector | None, wait_ready: bool = True, **overrides: Any) -> It
 def free_endpoint() -> str:
     """A zenoh TCP endpoint on a free loopback port."""
     return f"tcp/127.0.0.1:{free_port()}"
+
+
+CONTROL = np.random.default_rng(0).uniform(-20, 20, (400, 4)).astype(np.float32)  # a sector with boxes
+
+
+def control_reply(url: str, stream: str) -> DetectionsReply:
+    """A fresh stream's first sector, always the same (CONTROL): fuzz tests compare its detections before
+    and after to show that nothing they sent changed another stream."""
+    r = httpx.post(
+        f"{url}/v1/streams/{stream}/sectors",
+        content=encode_sector(sector_msg(stream, 0, CONTROL)),
+        headers={"Content-Type": MSGPACK},
+        timeout=60,
+    )
+    out = decode_response(r.content)
+    assert r.status_code == 200 and isinstance(out, DetectionsReply), out
+    return out
+
+
+def assert_same_reply(a: DetectionsReply, b: DetectionsReply) -> None:
+    assert len(a.scores) > 0  # the control sector has boxes, so the comparison means something
+    for x, y in ((a.boxes, b.boxes), (a.scores, b.scores), (a.labels, b.labels)):
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-5)

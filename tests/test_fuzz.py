@@ -15,7 +15,14 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, example, given, seed, settings
 from hypothesis import strategies as st
-from server_helpers import default_detector, free_endpoint, sector_msg, serve
+from server_helpers import (
+    assert_same_reply,
+    control_reply,
+    default_detector,
+    free_endpoint,
+    sector_msg,
+    serve,
+)
 
 from contract import (
     HTTP_STATUS,
@@ -34,7 +41,6 @@ from server.zenoh_transport import MSGPACK_ENCODING, ZenohConfig, open_session
 
 CASES = int(os.environ.get("PHIM_FUZZ_CASES", "700"))  # per property; scripts/fuzz.sh raises it
 LIMITS = Limits(max_body_bytes=2**20, max_points=20_000, max_string_len=64)
-CONTROL = np.random.default_rng(0).uniform(-20, 20, (400, 4)).astype(np.float32)
 KEYS = KeySpace()
 ZENOH_STREAMS = ["fuzz-3", "fuzz-4", "control-c", "*", "**", "a$*b", "x" * 80]  # keys, wildcards included
 FUZZ = settings(
@@ -106,27 +112,9 @@ def served() -> Iterator[tuple[Any, str]]:
         yield s, endpoint
 
 
-def _control(url: str, stream: str) -> DetectionsReply:
-    r = httpx.post(
-        f"{url}/v1/streams/{stream}/sectors",
-        content=encode_sector(sector_msg(stream, 0, CONTROL)),
-        headers={"Content-Type": MSGPACK},
-        timeout=60,
-    )
-    out = decode_response(r.content)
-    assert r.status_code == 200 and isinstance(out, DetectionsReply), out
-    return out
-
-
-def assert_same(a: DetectionsReply, b: DetectionsReply) -> None:
-    assert len(a.scores) > 0  # the control sector has boxes, so the comparison means something
-    for x, y in ((a.boxes, b.boxes), (a.scores, b.scores), (a.labels, b.labels)):
-        np.testing.assert_allclose(x, y, rtol=0, atol=1e-5)
-
-
 def test_http_fuzz_never_500_and_harms_no_other_stream(served) -> None:
     url = served[0].url
-    before = _control(url, "control-a")
+    before = control_reply(url, "control-a")
     statuses: dict[int, int] = {}
     with httpx.Client(base_url=url, timeout=30) as client:
 
@@ -142,14 +130,14 @@ def test_http_fuzz_never_500_and_harms_no_other_stream(served) -> None:
             assert isinstance(out, DetectionsReply | ErrorReply)
 
         one()
-    after = _control(url, "control-b")  # a fresh stream, the same sector: the same boxes
-    assert_same(after, before)
+    after = control_reply(url, "control-b")  # a fresh stream, the same sector: the same boxes
+    assert_same_reply(after, before)
     assert sum(statuses.values()) == CASES and httpx.get(f"{url}/health/live").status_code == 200
 
 
 def test_zenoh_fuzz_answers_every_get_once(served) -> None:
     url, endpoint = served[0].url, served[1]
-    before = _control(url, "control-c")
+    before = control_reply(url, "control-c")
     codes: dict[str, int] = {}
     with open_session(ZenohConfig(mode="client", listen=(), connect=(endpoint,))) as session:
 
@@ -169,6 +157,6 @@ def test_zenoh_fuzz_answers_every_get_once(served) -> None:
             assert code == "ok" or out.code is ErrorCode.OVERLOADED or HTTP_STATUS[out.code] < 500, out
 
         one()
-    after = _control(url, "control-d")
-    assert_same(after, before)
+    after = control_reply(url, "control-d")
+    assert_same_reply(after, before)
     assert sum(codes.values()) == CASES
