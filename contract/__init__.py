@@ -119,6 +119,7 @@ class DetectionsReply:
     gap: int  # sectors missed since the stream's last processed seq
     timings: Timings
     cold_start: bool = False  # ran on a fresh state (first on this worker, or reset): no earlier context
+    worker_id: str = ""  # the worker that ran it
 
 
 @dataclass(frozen=True)
@@ -334,6 +335,7 @@ def _reply_keys(r: DetectionsReply) -> dict[str, Any]:  # the keys a reply has i
         gap=r.gap,
         timings=WireTimings(r.timings.queue_ms, r.timings.model_ms, r.timings.total_ms),
         cold_start=r.cold_start,
+        worker_id=r.worker_id,
     )
 
 
@@ -404,6 +406,7 @@ def decode_response(
         gap=reply.gap,
         timings=Timings(reply.timings.queue_ms, reply.timings.model_ms, reply.timings.total_ms),
         cold_start=reply.cold_start,
+        worker_id=reply.worker_id,
     )
 
 

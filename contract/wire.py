@@ -49,6 +49,7 @@ ColdStart = Annotated[
         "after it was ended, evicted or lost in a restart), or a reset; no earlier context"
     ),
 ]
+WorkerId = Annotated[str, Meta(description="the ID of the worker that ran the sector")]
 BOXES = "x, y, z (box centre), l, w, h (metres), yaw (radians), sensor frame"
 
 
@@ -104,6 +105,7 @@ class WireDetections(Struct, tag_field="kind", tag="detections"):
     gap: Gap
     timings: WireTimings
     cold_start: ColdStart = False
+    worker_id: WorkerId = ""
 
 
 class JsonDetections(Struct, tag_field="kind", tag="detections"):
@@ -119,6 +121,7 @@ class JsonDetections(Struct, tag_field="kind", tag="detections"):
     gap: Gap
     timings: WireTimings
     cold_start: ColdStart = False
+    worker_id: WorkerId = ""
 
 
 # ------------------------------------------------------------------------------ a message that breaks it

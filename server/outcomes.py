@@ -19,9 +19,10 @@ def sector_answer(
     t0: float,
     model_s: float,
     class_names: tuple[str, ...],
+    worker_id: str,
 ) -> DetectionsReply | ServiceError:
     """cold: the sector ran on a fresh state; t0: time.monotonic() when the forward started; model_s: its
-    seconds."""
+    seconds; worker_id: the worker that ran it."""
     if isinstance(r, SectorRejected):  # too big for the fixed-shape step: this sector only, state unchanged
         return ServiceError(ErrorCode.INVALID_FIELD, f"{r.message} (seq {p.msg.seq} not run)", r.field)
     d = r.detections
@@ -41,4 +42,5 @@ def sector_answer(
             total_ms=(time.monotonic() - p.submitted) * 1e3,
         ),
         cold_start=cold,
+        worker_id=worker_id,
     )

@@ -335,7 +335,7 @@ class Worker:
             results, stepped = self.det.step([p.points for p in batch], states)
             model_s = time.monotonic() - t0
             outcomes: list[Answer] = [
-                (p.future, p.transport, sector_answer(p, r, g, c, t0, model_s, names))
+                (p.future, p.transport, sector_answer(p, r, g, c, t0, model_s, names, self.worker_id))
                 for p, r, g, c in zip(batch, results, gaps, colds, strict=True)
             ]
             new_states = [

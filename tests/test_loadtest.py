@@ -52,6 +52,7 @@ def assert_counts_add_up(doc: dict[str, Any]) -> None:
     assert doc["answered"] == doc["ok"] + doc["errors"]
     assert doc["errors"] == sum(doc["errors_by_code"].values())
     assert doc["lost"] == sum(doc["lost_by_reason"].values())
+    assert doc["ok"] == sum(doc["by_worker"].values()) >= doc["cold_starts"]
 
 
 @pytest.mark.parametrize("transport", [Transport.HTTP, Transport.ZENOH])
@@ -68,6 +69,8 @@ def test_open_loop_counts_every_sector_and_writes_the_files(
     assert_counts_add_up(doc)
     assert doc["ok"] > 0 and doc["server_model_p50_ms"] > 0 and doc["p99_ms"] >= doc["p50_ms"] > 0
     assert doc["offered_sectors_per_s"] == pytest.approx(8.0)
+    assert doc["by_worker"] == {"test-worker": doc["ok"]}  # the reply names its worker, over both transports
+    assert doc["cold_starts"] == 2  # each vehicle's first sector (its stream is new)
     assert len(doc["steps"]) == 1 and doc["totals"]["sent"] == doc["sent"]
     rows = csv_rows(out.csv_path)  # type: ignore[arg-type]
     assert len(rows) == 1 and rows[0]["Vehicles"] == "2" and int(rows[0]["Sent"]) == doc["sent"]

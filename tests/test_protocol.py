@@ -241,6 +241,8 @@ def reply(k: int = 3) -> DetectionsReply:
         context_sectors=4,
         gap=2,
         timings=Timings(0.5, 30.0, 31.0),
+        cold_start=True,
+        worker_id="gpu-7",
     )
 
 
@@ -253,13 +255,19 @@ def test_reply_round_trip(k: int):
     assert out.scores.tobytes() == r.scores.tobytes()
     assert out.labels.dtype == np.dtype("<i4") and out.labels.tolist() == r.labels.tolist()
     assert (out.class_names, out.context_sectors, out.gap, out.timings) == (r.class_names, 4, 2, r.timings)
+    assert (out.cold_start, out.worker_id) == (True, "gpu-7")
     js = reply_to_json(r)
     assert js["kind"] == "detections" and len(js["boxes"]) == k and js["timings"]["model_ms"] == 30.0
     assert json.loads(encode_reply(r, JSON)) == js
     out = decode_response(encode_reply(r, JSON), media_type=JSON)
     assert isinstance(out, DetectionsReply) and out.boxes.shape == (k, 7) and out.labels.dtype == np.int32
     assert out.boxes.tobytes() == r.boxes.tobytes() and out.scores.tobytes() == r.scores.tobytes()
-    assert (out.class_names, out.timings) == (r.class_names, r.timings)
+    assert (out.class_names, out.timings, out.cold_start, out.worker_id) == (
+        r.class_names,
+        r.timings,
+        True,
+        "gpu-7",
+    )
 
 
 def test_bad_reply_names_the_field():

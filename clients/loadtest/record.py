@@ -27,6 +27,8 @@ class Record:
     lost: Lost | None = None  # no answer
     boxes: int = 0
     context_sectors: int = 0
+    worker_id: str = ""  # the worker that answered with detections
+    cold_start: bool = False  # ... on a fresh stream state
     queue_ms: float = 0.0  # the server's timings (detections replies only)
     model_ms: float = 0.0
     server_ms: float = 0.0
@@ -43,6 +45,7 @@ class Record:
     def settle_ok(self, now: float, reply: DetectionsReply) -> None:
         self.done, self.ok = now, True
         self.boxes, self.context_sectors = int(reply.boxes.shape[0]), reply.context_sectors
+        self.worker_id, self.cold_start = reply.worker_id, reply.cold_start
         t = reply.timings
         self.queue_ms, self.model_ms, self.server_ms = t.queue_ms, t.model_ms, t.total_ms
 

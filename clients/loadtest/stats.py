@@ -36,6 +36,8 @@ class StepResult:
     error_rate: float  # (errors + lost) / sent
     errors_by_code: dict[str, int]
     lost_by_reason: dict[str, int]
+    by_worker: dict[str, int]  # detections replies by the worker that ran them
+    cold_starts: int  # detections replies that ran on a fresh stream state (a stream's first, or moved)
     offered_sectors_per_s: float  # scheduled (open loop) or sent (closed loop) per second of the span
     achieved_sectors_per_s: float  # answered sectors per second, until the last answer
     predictions_per_s: float  # detections replies per second, until the last answer
@@ -94,6 +96,8 @@ def summarize(step: StepRun, cfg: LoadTestConfig, transport: str) -> StepResult:
         error_rate=error_rate,
         errors_by_code=dict(sorted(errors.items())),
         lost_by_reason=dict(sorted(lost.items())),
+        by_worker=dict(sorted(Counter(r.worker_id for r in ok).items())),
+        cold_starts=sum(r.cold_start for r in ok),
         offered_sectors_per_s=len(recs) / span,
         achieved_sectors_per_s=len(answered) / window,
         predictions_per_s=len(ok) / window,
