@@ -18,8 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -28,7 +26,7 @@ import time
 import urllib.request
 from pathlib import Path
 
-from clients.bench.server import free_port  # the project installed (scripts/setup.sh)
+from clients.bench.server import free_port, spawned  # the project installed (scripts/setup.sh)
 
 REPO = Path(__file__).resolve().parents[1]
 SECTORS_PER_S = 40  # one vehicle at sensor rate: 10 turns/s x 4 sectors
@@ -75,84 +73,70 @@ def loadtest(url: str, zenoh: str, transport: str, args: list[str], out: Path) -
 def run(duration_s: float, factor: float, idle_s: float) -> dict:
     port, zport = free_port(), free_port()
     url, zenoh = f"http://127.0.0.1:{port}", f"tcp/127.0.0.1:{zport}"
-    env = {
-        **os.environ,
-        "PHIM_PORT": str(port),
-        "PHIM_ZENOH_LISTEN": zenoh,
-        "PHIM_IDLE_TIMEOUT_S": str(idle_s),
-    }
+    env = {"PHIM_PORT": str(port), "PHIM_ZENOH_LISTEN": zenoh, "PHIM_IDLE_TIMEOUT_S": str(idle_s)}
     tmp = Path(tempfile.mkdtemp(prefix="phim-soak-"))
-    log = (tmp / "serve.log").open("w")
-    server = subprocess.Popen(
-        [sys.executable, "-m", "phim", "serve"], cwd=REPO, env=env, stdout=log, stderr=log
-    )
-    try:
-        for _ in range(600):
-            try:
-                if get_json(f"{url}/health/ready")["status"] == "ready":
-                    break
-            except OSError:
-                pass
-            assert server.poll() is None, (tmp / "serve.log").read_text()[-2000:]
-            time.sleep(0.5)
-        probe = tmp / "capacity.json"
-        p = loadtest(url, zenoh, "http", ["--mode", "closed", "--vehicles", "4", "--duration", "5"], probe)
-        p.wait()
-        capacity = json.loads(probe.read_text())["peak_achieved_sectors_per_s"]
-        vehicles = max(2, math.ceil(factor * capacity / SECTORS_PER_S))
-        split = {"http": (vehicles + 1) // 2, "zenoh": vehicles // 2}
-        samples: list[tuple[float, float, float]] = []  # seconds, RSS MB, heap in use MB
-        done = threading.Event()
-
-        def sample() -> None:
-            t0 = time.monotonic()
-            while not done.wait(1.0):
-                samples.append((time.monotonic() - t0, rss_mb(server.pid), heap_mb(url)))
-
-        sampler = threading.Thread(target=sample, daemon=True)
-        sampler.start()
-        runs = {}
-        for transport, n in split.items():
-            args = ["--vehicles", str(n), "--duration", str(duration_s), "--warmup", "0"]
-            args += ["--stream-prefix", f"soak-{transport}"]
-            runs[transport] = (
-                loadtest(url, zenoh, transport, args, tmp / f"{transport}.json"),
-                tmp / f"{transport}.json",
-            )
-        reports = {}
-        for transport, (proc, out) in runs.items():
-            _, err = proc.communicate()
-            reports[transport] = json.loads(out.read_text()) if out.exists() else {"error": err[-2000:]}
-        done.set()
-        time.sleep(idle_s + 3)  # idle eviction
-        live = get_json(f"{url}/v1/streams")["live"]
-        half = [s for s in samples if s[0] >= samples[-1][0] / 2] if samples else []
-        none = (math.nan,) * 3
-        first, last = (samples[0], samples[-1]) if samples else (none, none)
-        return {
-            "duration_s": duration_s,
-            "capacity_sectors_per_s": capacity,
-            "factor": factor,
-            "vehicles": split,
-            "reports": {
-                t: {k: r.get(k) for k in ("sent", "answered", "ok", "errors", "lost", "errors_by_code")}
-                for t, r in reports.items()
-            },
-            "rss_mb_start": first[1],
-            "rss_mb_end": last[1],
-            "rss_slope_mb_per_min": round(slope_mb_per_min([(t, r) for t, r, _ in half]), 2),
-            "heap_mb_start": round(first[2], 1),
-            "heap_mb_end": round(last[2], 1),
-            "heap_slope_mb_per_min": round(slope_mb_per_min([(t, h) for t, _, h in half]), 2),
-            "live_streams_after_idle": live,
-        }
-    finally:
-        server.send_signal(signal.SIGTERM)
+    serve = [sys.executable, "-m", "phim", "serve"]
+    with (tmp / "serve.log").open("w") as log:
         try:
-            server.wait(60)
-        except subprocess.TimeoutExpired:
-            server.kill()
-        log.close()
+            with spawned(serve, f"{url}/health/ready", env, log) as server:
+                return soak(server.pid, url, zenoh, tmp, duration_s, factor, idle_s)
+        except RuntimeError as e:  # it did not start: say why
+            raise RuntimeError(f"{e}\n{(tmp / 'serve.log').read_text()[-2000:]}") from e
+
+
+def soak(pid: int, url: str, zenoh: str, tmp: Path, duration_s: float, factor: float, idle_s: float) -> dict:
+    """Measure the ceiling, then load at `factor` times it over both transports, sampling the server."""
+    probe = tmp / "capacity.json"
+    p = loadtest(url, zenoh, "http", ["--mode", "closed", "--vehicles", "4", "--duration", "5"], probe)
+    p.wait()
+    capacity = json.loads(probe.read_text())["peak_achieved_sectors_per_s"]
+    vehicles = max(2, math.ceil(factor * capacity / SECTORS_PER_S))
+    split = {"http": (vehicles + 1) // 2, "zenoh": vehicles // 2}
+    samples: list[tuple[float, float, float]] = []  # seconds, RSS MB, heap in use MB
+    done = threading.Event()
+
+    def sample() -> None:
+        t0 = time.monotonic()
+        while not done.wait(1.0):
+            samples.append((time.monotonic() - t0, rss_mb(pid), heap_mb(url)))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    runs = {}
+    for transport, n in split.items():
+        args = ["--vehicles", str(n), "--duration", str(duration_s), "--warmup", "0"]
+        args += ["--stream-prefix", f"soak-{transport}"]
+        runs[transport] = (
+            loadtest(url, zenoh, transport, args, tmp / f"{transport}.json"),
+            tmp / f"{transport}.json",
+        )
+    reports = {}
+    for transport, (proc, out) in runs.items():
+        _, err = proc.communicate()
+        reports[transport] = json.loads(out.read_text()) if out.exists() else {"error": err[-2000:]}
+    done.set()
+    time.sleep(idle_s + 3)  # idle eviction
+    live = get_json(f"{url}/v1/streams")["live"]
+    half = [s for s in samples if s[0] >= samples[-1][0] / 2] if samples else []
+    none = (math.nan,) * 3
+    first, last = (samples[0], samples[-1]) if samples else (none, none)
+    return {
+        "duration_s": duration_s,
+        "capacity_sectors_per_s": capacity,
+        "factor": factor,
+        "vehicles": split,
+        "reports": {
+            t: {k: r.get(k) for k in ("sent", "answered", "ok", "errors", "lost", "errors_by_code")}
+            for t, r in reports.items()
+        },
+        "rss_mb_start": first[1],
+        "rss_mb_end": last[1],
+        "rss_slope_mb_per_min": round(slope_mb_per_min([(t, r) for t, r, _ in half]), 2),
+        "heap_mb_start": round(first[2], 1),
+        "heap_mb_end": round(last[2], 1),
+        "heap_slope_mb_per_min": round(slope_mb_per_min([(t, h) for t, _, h in half]), 2),
+        "live_streams_after_idle": live,
+    }
 
 
 def main() -> int:

@@ -29,6 +29,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import IO
 
 import click
 import httpx
@@ -160,12 +161,16 @@ def free_port() -> int:
 
 
 @contextlib.contextmanager
-def spawned(cmd: list[str], ready_url: str) -> Iterator[None]:
-    """`cmd` in a subprocess until `ready_url` answers 200; SIGTERM at the end."""
-    proc = subprocess.Popen(cmd, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+def spawned(
+    cmd: list[str], ready_url: str, env: dict[str, str] | None = None, log: IO[str] | None = None
+) -> Iterator[subprocess.Popen[bytes]]:
+    """`cmd` in a subprocess (extra `env`, output to `log` if given) until `ready_url` answers 200; SIGTERM
+    at the end (SIGKILL if it has not exited 60 s later)."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
+    proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=log)
     try:
         _wait_ready(ready_url, proc)
-        yield
+        yield proc
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
