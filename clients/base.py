@@ -97,6 +97,7 @@ class DetectorClient(abc.ABC):
     """
 
     transport: str  # "http" or "zenoh"
+    retries: int = 0  # sectors sent once more to another worker after theirs left (zenoh, auto_workers)
 
     @abc.abstractmethod
     def send(self, msg: SectorMessage) -> DetectionsReply:

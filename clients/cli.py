@@ -136,7 +136,12 @@ def _data(data: Path | None, synthetic: bool) -> Path | None:
     "--stream-prefix",
     default="loadtest",
     show_default=True,
-    help="Stream IDs are PREFIX-<step>-<vehicle> (a --token covers the streams its prefix starts).",
+    help="Stream IDs are PREFIX-<tag>-<vehicle> (a --token covers the streams its prefix starts).",
+)
+@click.option(
+    "--stream-tag",
+    help="The <tag> of the stream IDs [default: random per step, so reruns never meet streams a server still "
+    "holds]; fixed, the IDs (and their workers, --workers auto) are the same every run. Not with --sweep.",
 )
 def loadtest(
     vehicles: int,
@@ -159,6 +164,8 @@ def loadtest(
     from clients.loadtest.report import table, to_json
     from clients.loadtest.run import run_loadtest
 
+    if sweep and options["stream_tag"]:
+        raise click.BadParameter("a sweep's steps need their own stream IDs", param_hint="--stream-tag")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     source = SourceConfig(folder=_data(data, synthetic), max_scans=max_scans, every=every)
     cfg = _loadtest_config(source, _vehicles(vehicles, sweep), not keep_going, **options)
@@ -186,6 +193,7 @@ def _loadtest_config(
     drain_timeout: float,
     seed: int,
     stream_prefix: str,
+    stream_tag: str | None,
     **connection: Any,
 ) -> LoadTestConfig:
     """The loadtest options -> a LoadTestConfig. Thresholds: those given, enforced; none given: the
@@ -208,6 +216,7 @@ def _loadtest_config(
         stop_after_failure=stop_after_failure,
         seed=seed,
         stream_prefix=stream_prefix,
+        stream_tag=stream_tag,
     )
 
 

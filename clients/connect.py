@@ -25,6 +25,7 @@ class ConnectConfig:
     zenoh_mode: str = "client"
     zenoh_config_file: str | None = None
     key_prefix: str = DEFAULT_KEY_PREFIX
+    auto_workers: bool = False  # zenoh: each stream to its owner among the live workers (--workers auto)
     timeout_s: float = 10.0
     use_http_control: bool = True  # over zenoh, reach model info / end stream at `url`
     token: str | None = None  # bearer token for HTTP (`phim serve --auth-tokens`)
@@ -51,6 +52,7 @@ def make_client(cfg: ConnectConfig, max_connections: int | None = 256) -> Detect
             connect=cfg.zenoh_connect,
             mode=cfg.zenoh_mode,
             key_prefix=cfg.key_prefix,
+            auto_workers=cfg.auto_workers,
             timeout_s=cfg.timeout_s,
             config_file=cfg.zenoh_config_file,
             http_url=cfg.url if cfg.use_http_control else None,

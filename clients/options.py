@@ -62,6 +62,16 @@ CONNECTION: list[Decorator] = [
         help="A zenoh JSON5 config file (TLS, ...).",
     ),
     click.option(
+        "--workers",
+        envvar="PHIM_WORKERS",
+        type=click.Choice(["shared", "auto"]),
+        default="shared",
+        show_default=True,
+        show_envvar=True,
+        help="zenoh: 'shared' sends to the shared keys (one worker); 'auto' sends each stream to its owner "
+        "among the live workers (a fleet; a sector whose worker died is sent once more to the new owner).",
+    ),
+    click.option(
         "--token",
         envvar="PHIM_TOKEN",
         show_envvar=True,
@@ -87,8 +97,8 @@ CONNECTION: list[Decorator] = [
 
 
 def connection_options(command: Callable[..., Any]) -> Callable[..., Any]:
-    """--transport, --url, --zenoh-connect, --zenoh-mode, --zenoh-config, --token, --ca-cert, --timeout: see
-    `connect_config`."""
+    """--transport, --url, --zenoh-connect, --zenoh-mode, --zenoh-config, --workers, --token, --ca-cert,
+    --timeout: see `connect_config`."""
     for option in reversed(CONNECTION):
         command = option(command)
     return command
@@ -100,6 +110,7 @@ def connect_config(
     zenoh_connect: str,
     zenoh_mode: str,
     zenoh_config: Path | None,
+    workers: str,
     token: str | None,
     ca_cert: Path | None,
     timeout: float,
@@ -111,6 +122,7 @@ def connect_config(
         zenoh_connect=tuple(e.strip() for e in zenoh_connect.split(",") if e.strip()),
         zenoh_mode=zenoh_mode,
         zenoh_config_file=None if zenoh_config is None else str(zenoh_config),
+        auto_workers=workers == "auto",
         timeout_s=timeout,
         token=token or None,
         ca_cert=None if ca_cert is None else str(ca_cert),

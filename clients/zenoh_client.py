@@ -8,6 +8,11 @@ The async path never blocks the event loop: the get runs with a callback handler
 thread), which decodes the reply and resolves an asyncio future through `loop.call_soon_threadsafe`; any
 number of gets may be in flight. zenoh has no model-info or end-stream keys: give `http_url` to reach those
 over HTTP; without it `end_stream` makes the stream's next sector a reset and `model_info` raises.
+
+With `auto_workers` (a fleet: `--workers auto`) each sector goes to its stream's owner among the live workers
+under that worker's own keys (clients/zenoh_workers.py). A sector that gets no answer from its owner (no
+reply, zenoh's timeout, or NOT_READY) because that owner has left is sent once more, to the new owner, as a
+reset; a second failure is raised. So a vehicle's sequence goes on across a worker's death, cold.
 """
 
 from __future__ import annotations
@@ -19,18 +24,28 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import zenoh
 
-from clients.base import ClientError, DetectorClient, OnSent, RequestTimeout, TransportError, answer
+from clients.base import (
+    ClientError,
+    DetectorClient,
+    OnSent,
+    RequestTimeout,
+    ServerError,
+    TransportError,
+    answer,
+)
 from clients.http_client import HttpClient
 from clients.zenoh_session import MSGPACK_ENCODING, open_session
-from clients.zenoh_workers import LiveWorkers
+from clients.zenoh_workers import LiveWorkers, StreamOwners
 from contract import (
     DEFAULT_KEY_PREFIX,
     DEFAULT_ZENOH_ENDPOINT,
     DetectionsReply,
+    ErrorCode,
     ErrorReply,
     KeySpace,
     SectorMessage,
@@ -57,6 +72,7 @@ class ZenohClientConfig:
     timeout_s: float = 10.0  # per get
     config_file: str | None = None  # a zenoh JSON5 file (TLS, ...); the fields above override it
     worker: str | None = None  # take answers from this worker ID only (default: any live worker)
+    auto_workers: bool = False  # send each stream to its owner among the live workers, under its own keys
     http_url: str | None = None  # the same server's HTTP address, for model_info / end_stream
     token: str | None = None  # the bearer token for http_url
     ca_cert: str | None = None  # the CA (PEM) an https http_url is checked against
@@ -85,53 +101,113 @@ class ZenohClient(DetectorClient):
                 f"zenoh: cannot open a {cfg.mode} session to {list(cfg.connect)}: {e}"
             ) from e
         self._live = LiveWorkers(self._session, self.keys)
+        self.owners = StreamOwners(self._live, min(2.0, cfg.timeout_s)) if cfg.auto_workers else None
         self.ignored_replies = 0
+        self.retries = 0  # sectors sent again to a new owner after theirs left (auto_workers)
         self._http = HttpClient(cfg.http_url, token=cfg.token, ca_cert=cfg.ca_cert) if cfg.http_url else None
 
     # ------------------------------------------------------------------------------------------ sectors
 
     def send(self, msg: SectorMessage) -> DetectionsReply:
-        replies = self._session_or_fail().get(self._key(msg), payload=self._body(msg), **self._get_options())
+        if self.owners is None:
+            return self._send_to(msg, None)
+        worker, msg = self._route(msg)
+        try:
+            return self._send_to(msg, worker)
+        except ClientError as e:
+            retry = self._retry(msg, worker, e)
+            if retry is None:
+                raise
+            return self._send_to(retry[1], retry[0])
+
+    async def send_async(self, msg: SectorMessage, on_sent: OnSent | None = None) -> DetectionsReply:
+        if self.owners is None:
+            return await self._send_to_async(msg, None, on_sent)
+        worker, msg = self._route(msg)
+        try:
+            return await self._send_to_async(msg, worker, on_sent)
+        except ClientError as e:
+            loop = asyncio.get_running_loop()
+            retry = await loop.run_in_executor(None, self._retry, msg, worker, e)
+            if retry is None:
+                raise
+            return await self._send_to_async(retry[1], retry[0], None)
+
+    def _send_to(self, msg: SectorMessage, worker: str | None) -> DetectionsReply:
+        key = self.keys.sector(msg.stream_id, worker)
+        replies = self._session_or_fail().get(key, payload=self._body(msg), **self._get_options())
+        expected = worker or self.config.worker
         outcome: Outcome | None = None
         held: list[Held] = []
         for reply in replies:  # ends when every queryable finalized the query, or at the timeout
-            judged, trusted = self._judge(reply)
+            judged, trusted = self._judge(reply, expected)
             if trusted is None:
                 held.append((reply, judged))
             elif outcome is None and trusted:
                 outcome = judged
         if outcome is None and held:
-            outcome = self._recheck(held)
-        return _result(outcome, self._key(msg))
+            outcome = self._recheck(held, expected)
+        return _result(outcome, key)
 
-    async def send_async(self, msg: SectorMessage, on_sent: OnSent | None = None) -> DetectionsReply:
+    async def _send_to_async(
+        self, msg: SectorMessage, worker: str | None, on_sent: OnSent | None
+    ) -> DetectionsReply:
         loop = asyncio.get_running_loop()
+        key = self.keys.sector(msg.stream_id, worker)
+        expected = worker or self.config.worker
         future: asyncio.Future[Outcome | list[Held] | None] = loop.create_future()
-        pending = _Pending(loop, future, self._judge)
+        pending = _Pending(loop, future, partial(self._judge, expected=expected))
         handler = zenoh.handlers.Callback(pending.on_reply, pending.on_done)
-        self._session_or_fail().get(self._key(msg), handler, payload=self._body(msg), **self._get_options())
+        self._session_or_fail().get(key, handler, payload=self._body(msg), **self._get_options())
         if on_sent is not None:  # the query is queued on the session: later gets follow it on the link
             on_sent()
         outcome = await future
         if isinstance(outcome, list):  # no worker's answer, only answers held back
-            outcome = await loop.run_in_executor(None, self._recheck, outcome)
-        return _result(outcome, self._key(msg))
+            outcome = await loop.run_in_executor(None, self._recheck, outcome, expected)
+        return _result(outcome, key)
 
-    def _judge(self, reply: zenoh.Reply) -> tuple[Outcome, bool | None]:
-        """A reply's outcome, and whether to take it: True for a worker's answer; False for a worker this
-        client is not pinned to; None (held back until the get ends) for an answer from a session that holds
-        no worker token (yet), and for zenoh's own errors (its b"Timeout" comes when the get ends anyway)."""
+    def _route(self, msg: SectorMessage) -> tuple[str, SectorMessage]:
+        """The stream's owner, and the sector to send it (a reset when the stream moves there)."""
+        assert self.owners is not None
+        worker, moved = self.owners.route(msg.stream_id)
+        return worker, dataclasses.replace(msg, reset=True) if moved else msg
+
+    def _retry(self, msg: SectorMessage, worker: str, e: ClientError) -> tuple[str, SectorMessage] | None:
+        """Where to send a sector once more: its stream's new owner, when `worker` failed it for lack of a
+        worker (no answer, zenoh's timeout, NOT_READY) and has left. None: raise `e`."""
+        assert self.owners is not None
+        lost = not isinstance(e, ServerError) or e.code is ErrorCode.NOT_READY
+        if not lost or not self.owners.gone(worker):
+            return None
+        new, _ = self.owners.route(msg.stream_id)
+        if new == worker:
+            return None
+        # always a reset: a stream's sectors in flight to a dead worker fail together and come back here in
+        # any order; as resets none is refused as stale on the new owner (each restarts the stream there)
+        msg = dataclasses.replace(msg, reset=True)
+        with self._lock:
+            self.retries += 1
+        log.info(
+            "zenoh: worker %s left; stream %s seq %d sent again to %s", worker, msg.stream_id, msg.seq, new
+        )
+        return new, msg
+
+    def _judge(self, reply: zenoh.Reply, expected: str | None) -> tuple[Outcome, bool | None]:
+        """A reply's outcome, and whether to take it: True for a worker's answer; False for another worker
+        than the `expected` one (the pinned or addressed worker); None (held back until the get ends) for an
+        answer from a session that holds no worker token (yet), and for zenoh's own errors (its b"Timeout"
+        comes when the get ends anyway)."""
         outcome = reply_outcome(reply)
         rid = reply.replier_id
         worker = self._live.worker_at(str(rid.zid)) if rid is not None else None
         if isinstance(outcome, ClientError) or worker is None:
             return outcome, None
-        if self.config.worker is not None and worker != self.config.worker:
-            self._ignore(reply, f"worker {worker!r}, not {self.config.worker!r}")
+        if expected is not None and worker != expected:
+            self._ignore(reply, f"worker {worker!r}, not {expected!r}")
             return outcome, False
         return outcome, True
 
-    def _recheck(self, held: list[Held]) -> Outcome | None:
+    def _recheck(self, held: list[Held], expected: str | None) -> Outcome | None:
         """When the get ended without a worker's answer: the first held answer whose session proves to be a
         worker once the tokens are asked for again; else zenoh's own error (the timeout); else None."""
         if not all(isinstance(outcome, ClientError) for _, outcome in held):
@@ -141,7 +217,7 @@ class ZenohClient(DetectorClient):
             if isinstance(outcome, ClientError):
                 errors.append(outcome)
                 continue
-            trusted = self._judge(reply)[1]
+            trusted = self._judge(reply, expected)[1]
             if trusted:
                 return outcome
             if trusted is None:
@@ -153,9 +229,6 @@ class ZenohClient(DetectorClient):
             self.ignored_replies += 1
         rid = reply.replier_id
         log.warning("zenoh: ignored an answer from %s: %s", rid.zid if rid is not None else "?", why)
-
-    def _key(self, msg: SectorMessage) -> str:
-        return self.keys.sector(msg.stream_id)
 
     def _body(self, msg: SectorMessage) -> bytes:
         with self._lock:

@@ -1,16 +1,25 @@
-"""Which zenoh sessions are workers: a client keeps the live workers' liveliness tokens
-(`{prefix}/workers/{worker_id}/{zid}`) and takes a sector's answer only from a session that holds one (and,
-when the client is pinned to a worker, holds that worker's). Any session on the network could declare a
-queryable and answer first with forged boxes; under the ACL of deploy/zenoh/ only workers may declare tokens
-and queryables, and this check is the client's half of that (docs/security.md)."""
+"""Which zenoh sessions are workers, and which worker owns a stream.
+
+A client keeps the live workers' liveliness tokens (`{prefix}/workers/{worker_id}/{zid}`) and takes a
+sector's answer only from a session that holds one (and, when the client is pinned to a worker or addresses
+one, holds that worker's). Any session on the network could declare a queryable and answer first with forged
+boxes; under the ACL of deploy/zenoh/ only workers may declare tokens and queryables, and this check is the
+client's half of that (docs/security.md).
+
+In a fleet (`--workers auto`), `StreamOwners` gives each stream its rendezvous owner among the live workers
+(`contract.stream_owner`) and remembers where each stream's last sector went, so that the first sector after
+a move is sent as a reset: the new owner starts the stream cold, and a worker the stream comes back to
+drops the state it kept from before."""
 
 from __future__ import annotations
 
 import threading
+import time
 
 import zenoh
 
-from contract import KeySpace
+from clients.base import TransportError
+from contract import KeySpace, stream_owner
 
 
 class LiveWorkers:
@@ -37,14 +46,18 @@ class LiveWorkers:
                 self._by_zid.pop(zid, None)
 
     def refresh(self, timeout_s: float) -> None:
-        """Ask for the tokens now (a worker may answer before its token's sample reached the subscriber)."""
+        """Ask for the tokens now: a worker may answer before its token's sample reached the subscriber, and
+        a client that lost a worker's answer wants to know now whether that worker is gone. The answer
+        replaces what the subscriber kept, unless the get ended with an error (its timeout): then it adds."""
         found: dict[str, str] = {}
+        complete = True
         for reply in self.session.liveliness().get(self.keys.worker("*", "*"), timeout=timeout_s):
             token = self.keys.worker_of(str(reply.ok.key_expr)) if reply.ok is not None else None
+            complete = complete and reply.ok is not None
             if token is not None:
                 found[token[1]] = token[0]
         with self._lock:
-            self._by_zid.update(found)
+            self._by_zid = found if complete else {**self._by_zid, **found}
 
     def worker_at(self, zid: str) -> str | None:
         """The worker ID of the session `zid`, or None if that session holds no worker token."""
@@ -57,3 +70,40 @@ class LiveWorkers:
 
     def close(self) -> None:
         self._subscriber.undeclare()
+
+
+class StreamOwners:
+    """Each stream's worker under `--workers auto`: its rendezvous owner among the live workers."""
+
+    def __init__(self, live: LiveWorkers, refresh_timeout_s: float):
+        self.live = live
+        self.refresh_timeout_s = refresh_timeout_s
+        self._last: dict[str, str] = {}  # stream ID -> the worker its last sector was sent to
+        self._lock = threading.Lock()
+        self.moves = 0  # sectors sent to another worker than the stream's previous one (sent as resets)
+
+    def route(self, stream_id: str) -> tuple[str, bool]:
+        """(the stream's owner now, whether the stream moves to it with this sector)."""
+        workers = self.live.ids() or self._wait_for_workers()
+        worker = stream_owner(stream_id, workers)
+        if worker is None:
+            raise TransportError(f"zenoh: no live worker under {self.live.keys.prefix}")
+        with self._lock:
+            previous, self._last[stream_id] = self._last.get(stream_id), worker
+            moved = previous is not None and previous != worker
+            self.moves += moved
+        return worker, moved
+
+    def _wait_for_workers(self) -> list[str]:
+        """None seen yet: a session just opened learns the tokens from its router over a few ms, and a get
+        asked before that answers with none. Ask again until one shows, for `refresh_timeout_s` at most."""
+        deadline = time.monotonic() + self.refresh_timeout_s
+        while not (workers := self.live.ids()) and time.monotonic() < deadline:
+            self.live.refresh(self.refresh_timeout_s)
+            time.sleep(0.05)
+        return workers
+
+    def gone(self, worker: str) -> bool:
+        """Whether `worker` has left (its token is gone), asked for now."""
+        self.live.refresh(self.refresh_timeout_s)
+        return worker not in self.live.ids()

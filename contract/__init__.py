@@ -26,6 +26,7 @@ from contract.keys import DEFAULT_KEY_PREFIX as DEFAULT_KEY_PREFIX
 from contract.keys import DEFAULT_URL as DEFAULT_URL
 from contract.keys import DEFAULT_ZENOH_ENDPOINT as DEFAULT_ZENOH_ENDPOINT
 from contract.keys import KeySpace as KeySpace
+from contract.placement import stream_owner as stream_owner
 from contract.wire import INT64_MAX as INT64_MAX
 from contract.wire import MAX_LIST_LEN as MAX_LIST_LEN
 from contract.wire import (

@@ -26,11 +26,19 @@ class KeySpace:
     def sector_subscriber(self) -> str:  # pub/sub: put a sector
         return f"{self.prefix}/streams/*/sectors"
 
-    def sector(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/sector"
+    def sector(self, stream_id: str, worker_id: str | None = None) -> str:
+        """Where a get sends a stream's sector: any worker serving the shared keys, or (`worker_id`) that
+        worker only, under its own keys (a fleet: `contract.stream_owner` says which)."""
+        return f"{self.prefix}/streams/{stream_id}{_at(worker_id)}/sector"
 
-    def sectors(self, stream_id: str) -> str:
-        return f"{self.prefix}/streams/{stream_id}/sectors"
+    def sectors(self, stream_id: str, worker_id: str | None = None) -> str:
+        return f"{self.prefix}/streams/{stream_id}{_at(worker_id)}/sectors"
+
+    def worker_sector_queryable(self, worker_id: str) -> str:  # the same, under one worker's keys
+        return self.sector("*", worker_id)
+
+    def worker_sector_subscriber(self, worker_id: str) -> str:
+        return self.sectors("*", worker_id)
 
     def detections(self, stream_id: str) -> str:
         return f"{self.prefix}/streams/{stream_id}/detections"
@@ -53,3 +61,7 @@ class KeySpace:
         """The stream-ID chunk of `{prefix}/streams/{id}/...` ('' if the key has another shape)."""
         head = f"{self.prefix}/streams/"
         return key[len(head) :].split("/", 1)[0] if key.startswith(head) else ""
+
+
+def _at(worker_id: str | None) -> str:
+    return "" if worker_id is None else f"/workers/{worker_id}"

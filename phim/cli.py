@@ -56,6 +56,9 @@ COMMANDS: dict[str, Entry | Group] = {
             "ops": Entry("model.tools.cli:bench_ops_cmd", "Torch ops and host syncs of one streaming step."),
             "sim": Entry("model.data.sim.cli:bench_sim_cmd", "Simulator throughput, single-threaded."),
             "server": Entry("clients.bench.server:bench_server_cmd", "The server's own overhead per sector."),
+            "fleet": Entry(
+                "clients.bench.fleet:bench_fleet_cmd", "Throughput of 1..N workers behind a router."
+            ),
         },
     ),
 }

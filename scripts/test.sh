@@ -4,6 +4,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+bash scripts/test_services.sh  # Debian nginx for tests/test_nginx.py, when it can be installed
 VENV=${PHIM_VENV:-.venv}
 
 "$VENV/bin/ruff" check .

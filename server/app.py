@@ -7,11 +7,12 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import threading
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from fastapi import FastAPI, Request, Response
 from fastapi.responses import JSONResponse, PlainTextResponse
@@ -42,6 +43,9 @@ from server.openapi import error_responses, publish_sector_route
 from server.settings import Settings
 from server.warmup import package_version
 from server.worker import Worker
+
+if TYPE_CHECKING:
+    from server.zenoh_transport import ZenohTransport
 
 log = logging.getLogger(__name__)
 
@@ -103,14 +107,23 @@ def start_zenoh(settings: Settings, worker: Worker) -> Closeable:
         settings.limits(),
         on_reject=lambda code: worker.metrics.count("zenoh", code.value),
     )
-    transport.start()
+    transport.start(announce=False)
     log.info(
         "zenoh: mode=%s listen=%s connect=%s",
         settings.zenoh_mode,
         settings.zenoh_listen,
         settings.zenoh_connect,
     )
+    threading.Thread(target=_announce_when_ready, args=(worker, transport), daemon=True).start()
     return transport
+
+
+def _announce_when_ready(worker: Worker, transport: ZenohTransport) -> None:
+    """The liveliness token once the worker is warmed up (never, if its start-up fails)."""
+    while worker.live:
+        if worker.wait_ready(1.0):
+            transport.announce()
+            return
 
 
 def create_app(

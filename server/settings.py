@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from contract import DEFAULT_HTTP_PORT, DEFAULT_ZENOH_ENDPOINT, Limits
+from contract import DEFAULT_HTTP_PORT, DEFAULT_ZENOH_ENDPOINT, STREAM_ID_PATTERN, Limits
 from server.auth import TokenFile
 
 MAX_GRAPH_BATCH = 32  # the largest batch bucket of the fixed-shape step (model/graph/buckets.py)
@@ -130,9 +130,18 @@ class Settings(BaseSettings):
     zenoh_connect: Endpoints = Field((), description="Zenoh endpoints to connect to (a router, other peers).")
     zenoh_config_file: Path | None = Field(None, description="A zenoh JSON5 config file (TLS, ACL, ...).")
     zenoh_multicast_scouting: bool = Field(False, description="Zenoh multicast scouting.")
+    zenoh_shared_keys: bool = Field(
+        True,
+        description="Also answer the shared keys phim/v1/streams/{id}/... (one worker alone). Turn off when "
+        "several workers share a router: each answers only its own keys, and clients pick a stream's worker "
+        "(--workers auto).",
+    )
     # identity and logs
     worker_id: str = Field(
-        default_factory=default_worker_id, description="This worker's ID [default: host-pid]."
+        default_factory=default_worker_id,
+        pattern=STREAM_ID_PATTERN,
+        max_length=128,
+        description="This worker's ID, unique in a fleet (letters, digits, . _ -) [default: host-pid].",
     )
     log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="Log level.")
     log_format: Literal["text", "json"] = Field(
@@ -227,4 +236,5 @@ class Settings(BaseSettings):
             connect=tuple(self.zenoh_connect),
             multicast_scouting=self.zenoh_multicast_scouting,
             config_file=None if self.zenoh_config_file is None else str(self.zenoh_config_file),
+            shared_keys=self.zenoh_shared_keys,
         )

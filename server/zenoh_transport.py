@@ -7,7 +7,9 @@ Threads, so that no zenoh callback ever blocks and no zenoh call is made inside 
   - two receiver threads (one per channel) `recv`, decode and `submit`; `submit` never blocks;
   - the future's done-callback (it runs on the worker's device thread) only puts the outcome in the outbox;
   - one replier thread owns every outgoing zenoh call: `reply`/`reply_err` + `drop` for queries, `put` for
-    pub/sub results. Every sector gets exactly one answer, also on decode errors and on `close`.
+    pub/sub results. Every sector gets exactly one answer, also on decode errors and on `close`. (The one
+    exception: a wildcard get that reaches both the worker's own and the shared queryable is finalized
+    unanswered by the own one's receiver, since the shared one answers it.)
 
 Key expressions (prefix "phim/v1" by default): see `contract.KeySpace` and docs/protocol.md ("Zenoh").
 """
@@ -62,6 +64,9 @@ class ZenohConfig:
     multicast_scouting: bool = False
     config_file: str | None = None  # a zenoh JSON5 config file; the fields above override it
     key_prefix: str = DEFAULT_KEY_PREFIX
+    # also answer the shared keys `{prefix}/streams/{id}/...` (one worker alone); off in a fleet, where each
+    # worker answers only its own, `{prefix}/streams/{id}/workers/{worker_id}/...` (clients: --workers auto)
+    shared_keys: bool = True
 
 
 def build_config(cfg: ZenohConfig) -> zenoh.Config:
@@ -106,7 +111,8 @@ class _Job:
 
 
 class ZenohTransport:
-    """Queryable `{prefix}/streams/*/sector`, subscriber `{prefix}/streams/*/sectors`, liveliness token
+    """Queryable `{prefix}/streams/*/sector`, subscriber `{prefix}/streams/*/sectors` (the shared keys, when
+    served) and the same under `{prefix}/streams/*/workers/{worker_id}/`; liveliness token
     `{prefix}/workers/{worker_id}/{zid}`; results on `.../{id}/detections`, errors on `.../{id}/errors`."""
 
     def __init__(
@@ -125,8 +131,8 @@ class ZenohTransport:
         self.limits = limits
         self.keys = KeySpace(cfg.key_prefix)
         self._session: zenoh.Session | None = None
-        self._queryable: zenoh.Queryable | None = None
-        self._subscriber: zenoh.Subscriber | None = None
+        self._queryables: list[zenoh.Queryable] = []
+        self._subscribers: list[zenoh.Subscriber] = []
         self._token: zenoh.LivelinessToken | None = None
         self._outbox: queue.SimpleQueue[tuple[_Job, Outcome] | None] = queue.SimpleQueue()
         self._cond = threading.Condition()
@@ -137,35 +143,60 @@ class ZenohTransport:
 
     # ------------------------------------------------------------------------------------ public surface
 
-    def start(self) -> None:
-        """Open the session, declare queryable and subscriber, then the liveliness token (ready to serve)."""
+    def start(self, announce: bool = True) -> None:
+        """Open the session, declare queryables and subscribers, then (`announce`) the liveliness token."""
         if self._session is not None or self._closing:
             raise RuntimeError("a ZenohTransport starts once")
         session = open_session(self.cfg)
         self._session = session
         try:
             self._replier = self._thread(self._reply_loop, "replier")
-            self._queryable = session.declare_queryable(
-                self.keys.sector_queryable, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
-            )
-            self._subscriber = session.declare_subscriber(
-                self.keys.sector_subscriber, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
-            )
-            self._receivers = [
-                self._thread(self._receive_queries, "queries", self._queryable.handler),
-                self._thread(self._receive_samples, "samples", self._subscriber.handler),
-            ]
-            self._token = session.liveliness().declare_token(self.token_key)
+            for (queryable_key, subscriber_key), skip in zip(self.intake_keys, self._skips(), strict=True):
+                queryable = session.declare_queryable(
+                    queryable_key, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
+                )
+                subscriber = session.declare_subscriber(
+                    subscriber_key, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
+                )
+                self._queryables.append(queryable)
+                self._subscribers.append(subscriber)
+                self._receivers.append(
+                    self._thread(self._receive_queries, "queries", queryable.handler, skip[0])
+                )
+                self._receivers.append(
+                    self._thread(self._receive_samples, "samples", subscriber.handler, skip[1])
+                )
+            if announce:
+                self.announce()
         except BaseException:
             self.close(drain_timeout_s=0.0)
             raise
         log.info(
-            "zenoh transport for worker %s: queryable %s, subscriber %s, liveliness %s",
+            "zenoh transport for worker %s: queryable, subscriber %s, liveliness %s",
             self.worker_id,
-            self.keys.sector_queryable,
-            self.keys.sector_subscriber,
+            self.intake_keys,
             self.token_key,
         )
+
+    @property
+    def intake_keys(self) -> list[tuple[str, str]]:
+        """(queryable, subscriber) key expressions: the worker's own, then the shared ones if served."""
+        own = (
+            self.keys.worker_sector_queryable(self.worker_id),
+            self.keys.worker_sector_subscriber(self.worker_id),
+        )
+        shared = (self.keys.sector_queryable, self.keys.sector_subscriber)
+        return [own, shared] if self.cfg.shared_keys else [own]
+
+    def announce(self) -> None:
+        """Declare the liveliness token: clients send this worker sectors from now on (a worker announces
+        itself once warmed up, so that no client routes a stream to it while it could only answer NOT_READY).
+        Idempotent; nothing once closing."""
+        with self._cond:
+            if self._session is None or self._closing or self._token is not None:
+                return
+            self._token = self._session.liveliness().declare_token(self.token_key)
+        log.info("zenoh: worker %s announced (%s)", self.worker_id, self.token_key)
 
     @property
     def token_key(self) -> str:
@@ -181,7 +212,7 @@ class ZenohTransport:
             if session is None or self._closing:
                 return
             self._closing = True
-        for entity in (self._token, self._queryable, self._subscriber):
+        for entity in (self._token, *self._queryables, *self._subscribers):
             if entity is not None:
                 entity.undeclare()  # closes the channels: the receivers drain them and stop
         for t in self._receivers:
@@ -208,13 +239,31 @@ class ZenohTransport:
         t.start()
         return t
 
-    def _receive_queries(self, channel: zenoh.handlers.Handler[zenoh.Query]) -> None:
+    def _skips(self) -> list[tuple[zenoh.KeyExpr | None, zenoh.KeyExpr | None]]:
+        """Per intake pair, the keys whose sectors it leaves to another pair: a wildcard get or put (e.g.
+        `{prefix}/streams/**`) reaches both the worker's own queryable and the shared one; the shared one
+        alone takes it (an error: it names no stream), so that it gets one answer, not two."""
+        if not self.cfg.shared_keys:
+            return [(None, None)]
+        shared = (zenoh.KeyExpr(self.keys.sector_queryable), zenoh.KeyExpr(self.keys.sector_subscriber))
+        return [shared, (None, None)]
+
+    def _receive_queries(
+        self, channel: zenoh.handlers.Handler[zenoh.Query], skip: zenoh.KeyExpr | None
+    ) -> None:
         while (query := _recv(channel)) is not None:
+            if skip is not None and query.key_expr.intersects(skip):
+                query.drop()  # finalized unanswered: the shared queryable answers it
+                continue
             self._accept(str(query.key_expr), query.payload, query)
 
-    def _receive_samples(self, channel: zenoh.handlers.Handler[zenoh.Sample]) -> None:
+    def _receive_samples(
+        self, channel: zenoh.handlers.Handler[zenoh.Sample], skip: zenoh.KeyExpr | None
+    ) -> None:
         while (sample := _recv(channel)) is not None:
-            if sample.kind == zenoh.SampleKind.PUT:
+            if sample.kind == zenoh.SampleKind.PUT and not (
+                skip is not None and sample.key_expr.intersects(skip)
+            ):
                 self._accept(str(sample.key_expr), sample.payload, None)
 
     def _accept(self, key: str, payload: zenoh.ZBytes | None, query: zenoh.Query | None) -> None:

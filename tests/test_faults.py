@@ -5,17 +5,14 @@ consumer (nobody else waits for it)."""
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
 from concurrent.futures import Future
 from pathlib import Path
-from typing import Any
 
 import httpx
 import numpy as np
@@ -25,6 +22,7 @@ from conftest import rss_bytes
 from server_helpers import default_detector, free_endpoint, free_port, sector_msg
 
 from clients.base import ClientError
+from clients.bench.fleet import start_router
 from clients.connect import ConnectConfig, Transport, make_client
 from clients.zenoh_client import ZenohClient
 from contract import DetectionsReply, ErrorCode, KeySpace, Limits, SectorMessage, ServiceError, encode_sector
@@ -126,20 +124,6 @@ def test_a_killed_worker_gives_every_client_call_an_error_within_its_timeout(tmp
             server.kill()
         server.wait(30)
         log.close()
-
-
-def start_router(endpoint: str, log: Any) -> subprocess.Popen[bytes]:
-    """`phim router` on `endpoint`, once it accepts connections."""
-    router = subprocess.Popen(
-        [sys.executable, "-m", "phim", "router", "--listen", endpoint], cwd=REPO, stdout=log, stderr=log
-    )
-    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
-    deadline = time.monotonic() + 60
-    while True:
-        assert router.poll() is None and time.monotonic() < deadline, "the router did not start"
-        with contextlib.suppress(OSError), socket.create_connection((host, int(port)), timeout=1):
-            return router
-        time.sleep(0.1)
 
 
 def test_a_router_restart_errors_what_was_in_flight_and_everyone_reconnects(tmp_path: Path) -> None:

@@ -142,7 +142,11 @@ def test_the_json_has_every_sample_and_a_time_series_that_adds_up(served: Served
     samples, series = step["samples"], step["series"]
     n = len(samples["seq"])
     assert n == step["sent"] + step["uncounted"] == 2 * 2.5 * 8  # 2 vehicles x 2.5 s x 8 sectors/s
-    assert set(samples) == {"vehicle", "seq", "due_s", "sent_lag_ms", "latency_ms", "outcome", "counted"}
+    assert set(samples) == {
+        *("vehicle", "seq", "due_s", "sent_lag_ms", "latency_ms", "outcome", "counted"),
+        *("worker", "cold_start", "context_sectors"),
+    }
+    assert set(samples["worker"]) == {"test-worker"} and samples["cold_start"].count(True) == 2  # one each
     assert all(len(col) == n for col in samples.values())
     assert [s["start_s"] for s in series] == list(range(len(series))) and len(series) >= 3
     assert sum(s["offered"] for s in series) == sum(s["sent"] for s in series) == n

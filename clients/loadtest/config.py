@@ -62,6 +62,7 @@ class LoadTestConfig:
     stop_after_failure: bool = True  # an open-loop sweep stops at the first step that does not hold
     settle_s: float = 0.5  # pause between sweep steps
     stream_prefix: str = "loadtest"
+    stream_tag: str | None = None  # the IDs' middle part (None: random per step, so reruns never collide)
     seed: int = 0  # vehicle start offsets and scan choice
 
     @property

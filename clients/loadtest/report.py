@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import json
 import math
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,7 @@ from clients.loadtest.config import LoadTestConfig
 from clients.loadtest.record import Lost
 from clients.loadtest.stats import StepResult
 
-TOTALS = ("sent", "answered", "ok", "errors", "lost", "uncounted")
+TOTALS = ("sent", "answered", "ok", "errors", "lost", "uncounted", "cold_starts")
 PER_STEP_ONLY = ("windows", "series", "samples")  # in `steps`, not repeated in the headline
 CSV_COLUMNS = (
     ("Vehicles", "vehicles"),
@@ -52,6 +53,7 @@ class LoadTestReport:
     sectors_per_turn: int
     config: LoadTestConfig
     steps: list[StepResult]
+    retried: int = 0  # sectors the client sent once more, to a new owner, after their worker left (zenoh)
 
     @property
     def max_vehicles_held(self) -> int | None:
@@ -137,7 +139,13 @@ def to_json(report: LoadTestReport) -> dict[str, Any]:
             "max_vehicles_held": report.max_vehicles_held,
             "peak_achieved_sectors_per_s": report.peak_step.achieved_sectors_per_s,
             "peak_vehicles": report.peak_step.vehicles,
-            "totals": {k: sum(getattr(s, k) for s in report.steps) for k in TOTALS},
+            "retried": report.retried,
+            "totals": {
+                **{k: sum(getattr(s, k) for s in report.steps) for k in TOTALS},
+                "by_worker": dict(
+                    sorted(sum((Counter(s.by_worker) for s in report.steps), Counter()).items())
+                ),
+            },
             "steps": [step_dict(s) for s in report.steps],
             "config": dataclasses.asdict(report.config),
         }

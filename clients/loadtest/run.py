@@ -40,7 +40,9 @@ def run_loadtest(cfg: LoadTestConfig, out: OutputConfig | None = None) -> LoadTe
         steps = asyncio.run(_run_steps(client, source, cfg, spt, out.progress))
     finally:
         client.close()
-    report = LoadTestReport(client.transport, cfg.mode.value, source.description, spt, cfg, steps)
+    report = LoadTestReport(
+        client.transport, cfg.mode.value, source.description, spt, cfg, steps, retried=client.retries
+    )
     write_outputs(report, out)
     return report
 

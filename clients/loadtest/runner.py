@@ -20,6 +20,7 @@ import asyncio
 import contextlib
 import itertools
 import random
+import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -50,6 +51,7 @@ class StepRun:
     send_end: float = 0.0  # loop time the vehicles stopped sending (closed loop: last answer in)
     drain_end: float = 0.0  # loop time the drain was over
     inflight: int = 0
+    t0_unix: float = 0.0  # t0 on the wall clock (to line the step up with server logs and metrics)
 
     def counted(self, rec: Record) -> bool:
         """Whether a sector belongs to the step's results (due in the counted span)."""
@@ -65,11 +67,12 @@ class StepRunner:
 
     async def run(self, vehicles: int, on_tick: Progress | None = None) -> StepRun:
         loop = asyncio.get_running_loop()
-        tag = uuid.uuid4().hex[:6]
+        tag = self.cfg.stream_tag or uuid.uuid4().hex[:6]
         ids = [f"{self.cfg.stream_prefix}-{tag}-{v}" for v in range(vehicles)]
         t0 = loop.time() + 0.05
         start = t0 + self.cfg.warmup_s
         step = StepRun(vehicles, t0, start, start + self.cfg.measure_s, ids, counted_from=start)
+        step.t0_unix = time.time() + (t0 - loop.time())
         ticker = asyncio.create_task(_tick(step, on_tick)) if on_tick else None
         judge = asyncio.create_task(_judge(step, self.cfg.windows)) if self.cfg.windows else None
         tasks: set[asyncio.Task[None]] = set()

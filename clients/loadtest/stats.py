@@ -27,6 +27,7 @@ class StepResult:
     mode: str
     vehicles: int
     duration_s: float  # the measured span
+    started_unix: float  # when the step's first sector was due (Unix time): samples' due_s count from here
     uncounted: int  # sectors sent outside the measured span (warm-up, windows before the stable ones)
     sent: int
     answered: int
@@ -87,6 +88,7 @@ def summarize(step: StepRun, cfg: LoadTestConfig, transport: str) -> StepResult:
         mode=cfg.mode.value,
         vehicles=step.vehicles,
         duration_s=span,
+        started_unix=round(step.t0_unix, 6),
         uncounted=len(step.records) - len(recs),
         sent=len(recs),
         answered=len(answered),
@@ -136,7 +138,8 @@ def threshold_checks(
 def samples(step: StepRun) -> dict[str, list[Any]]:
     """Every sector the step sent, by column (times in s from the step's start, latencies in ms; None where
     there is none): vehicle, seq, due_s, sent_lag_ms, latency_ms, outcome ("ok", the server's error code, or
-    "lost:<reason>"), counted (whether it is in the step's results)."""
+    "lost:<reason>"), counted (whether it is in the step's results); for detections: worker, cold_start,
+    context_sectors."""
     recs = step.records
     return {
         "vehicle": [r.vehicle for r in recs],
@@ -146,6 +149,9 @@ def samples(step: StepRun) -> dict[str, list[Any]]:
         "latency_ms": [round(r.latency_ms, 3) if r.answered else None for r in recs],
         "outcome": [_outcome(r) for r in recs],
         "counted": [step.counted(r) for r in recs],
+        "worker": [r.worker_id if r.ok else None for r in recs],
+        "cold_start": [r.cold_start if r.ok else None for r in recs],
+        "context_sectors": [r.context_sectors if r.ok else None for r in recs],
     }
 
 
