@@ -26,7 +26,7 @@ COPY clients ./clients
 
 # Install the package and its server extras at the pinned versions, without touching the base image's torch.
 RUN pip freeze | grep -i '^torch==' > /tmp/torch-constraint.txt \
- && pip install -c constraints.txt -c /tmp/torch-constraint.txt ".[server]" \
+ && pip install -c constraints.txt -c /tmp/torch-constraint.txt ".[server,ros2]" \
  && python -c "import torch, fastapi, zenoh; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
 
 # Weights inside the image: the shipped default model (model/weights/tiny-sim.pt) as a checkpoint file.

@@ -234,6 +234,23 @@ def _loadtest_config(
     "--rate", type=click.FloatRange(0), default=10.0, show_default=True, help="Turns/s; 0: at once."
 )
 @click.option("--stream-id", default="replay", show_default=True, help="The stream the drive is sent as.")
+@click.option(
+    "--topic",
+    help="ROS 2 recordings: the sensor_msgs/msg/PointCloud2 topic to replay (default: the only one).",
+)
+@click.option(
+    "--intensity-scale",
+    type=click.FloatRange(min=0, min_open=True),
+    default=1.0,
+    show_default=True,
+    help="ROS 2 recordings: multiply intensity by this (1/255 = 0.00392 for drivers publishing 0..255).",
+)
+@click.option(
+    "--mcap",
+    "mcap_out",
+    type=NewFile,
+    help="Also write the replayed points and the boxes as an MCAP file (Foxglove PointCloud + SceneUpdate).",
+)
 @connection_options
 @every_option
 @click.option("--max-scans", type=click.IntRange(1), help="Replay at most this many scans.")
@@ -244,13 +261,17 @@ def replay(
     frames: Path | None,
     rate: float,
     stream_id: str,
+    topic: str | None,
+    intensity_scale: float,
+    mcap_out: Path | None,
     every: int,
     max_scans: int | None,
     as_json: bool,
     **connection: Any,
 ) -> None:
     """Stream a recorded drive to a server and write its detections (SOURCE: a folder of scans: KITTI .bin,
-    nuScenes .pcd.bin, native .npz; or one scan file)."""
+    nuScenes .pcd.bin, native .npz; one scan file; or a ROS 2 recording of PointCloud2 messages, one per
+    turn: a rosbag2 folder (MCAP or sqlite3 storage), a .mcap or a .db3 file)."""
     from clients.replay import ReplayConfig
     from clients.replay import replay as run_replay
 
@@ -263,6 +284,9 @@ def replay(
         frames_dir=frames,
         max_scans=max_scans,
         every=every,
+        topic=topic,
+        intensity_scale=intensity_scale,
+        mcap=mcap_out,
     )
     s = _or_exit(run_replay, cfg)
     if as_json:
@@ -272,6 +296,7 @@ def replay(
         f"replayed {s.scans} scans, {s.sectors} sectors: {s.ok} answered with detections, {s.errors} errors, "
         f"{s.late_sectors} sent late; predictions in {out}"
         + (f", {len(s.frames)} frames in {frames}" if frames else "")
+        + (f", {s.scenes} scenes in {mcap_out}" if mcap_out else "")
     )
 
 

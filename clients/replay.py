@@ -1,16 +1,23 @@
 """`phim replay`: stream a recorded drive to a server, one stream, at sensor rate or as fast as answered.
 
-Each scan is cut into the model's sectors in sweep order (clients.sectorizer.split_scan) and sent in order;
+Each scan is cut into the model's sectors in sweep order (model.data.sectorizer.split_scan) and sent in order;
 every sector's answer (detections or the server's error) becomes one record of the prediction file
 (clients.predictions). With `frames_dir`, one bird's-eye-view PNG per scan after its last sector: points,
 the predicted boxes and the labels when they sit beside the scan (KITTI label_2 + calib, nuScenes boxes).
+
+The scans come from scan files (model.data.readers) or from a ROS 2 recording (rosbag2 folder, .mcap, .db3:
+model.data.recordings, one PointCloud2 message per turn). With `mcap`, the points of each scan and the
+boxes of its last sector are written as a Foxglove scene (phim.scene) at the scan's sensor time.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
+from itertools import islice
 from pathlib import Path
 from typing import Any
 
@@ -19,18 +26,20 @@ import numpy as np
 from clients.base import DetectorClient, ServerError
 from clients.connect import ConnectConfig, make_client
 from clients.predictions import PredictionRecord, PredictionWriter
-from clients.sectorizer import split_scan
 from contract import REQUIRED_FIELDS, SectorMessage
 from model.data.labels import labels_for
 from model.data.pictures import BoxSet, draw_bev
 from model.data.readers import Scan, find_scans, read_scan
+from model.data.recordings import is_recording, read_recording
+from model.data.sectorizer import split_scan
+from phim.scene import SceneChannels, record_scenes
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class ReplayConfig:
-    source: Path  # a folder of scans (or one scan file)
+    source: Path  # a folder of scans, one scan file, or a ROS 2 recording (rosbag2 folder, .mcap, .db3)
     predictions: Path  # the JSON-lines prediction file to write
     connect: ConnectConfig = field(default_factory=ConnectConfig)
     stream_id: str = "replay"
@@ -40,6 +49,9 @@ class ReplayConfig:
     max_scans: int | None = None
     every: int = 1  # keep every n-th point
     end_stream: bool = True  # end the stream on the server when done
+    topic: str | None = None  # recordings: the PointCloud2 topic (None: the only one)
+    intensity_scale: float = 1.0  # recordings: intensity multiplier (1/255 for 0..255 drivers)
+    mcap: Path | None = None  # write the replayed points and boxes as a Foxglove MCAP here
 
 
 @dataclass
@@ -50,12 +62,11 @@ class ReplaySummary:
     errors: int = 0
     late_sectors: int = 0  # sent after their due time (the server was slower than the sensor)
     frames: list[Path] = field(default_factory=list)
+    scenes: int = 0  # scans written to the MCAP file
 
 
 def replay(cfg: ReplayConfig) -> ReplaySummary:
-    paths = find_scans(cfg.source)[: cfg.max_scans]
-    if not paths:
-        raise FileNotFoundError(f"{cfg.source}: no scans (.bin, .pcd.bin, .npz)")
+    scans = scan_source(cfg)  # input errors raise here, before anything is sent
     with make_client(cfg.connect) as client:
         info = _model_info(client)
         spt = cfg.sectors_per_turn or int(info.get("sectors_per_turn", 4))
@@ -65,11 +76,30 @@ def replay(cfg: ReplayConfig) -> ReplaySummary:
             "sectors_per_turn": spt,
             "model": info,
         }
-        with PredictionWriter(cfg.predictions, header) as writer:
-            summary = _run(client, cfg, paths, spt, writer)
+        with PredictionWriter(cfg.predictions, header) as writer, _scenes(cfg.mcap) as scenes:
+            summary = _run(client, cfg, scans, spt, writer, scenes)
         if cfg.end_stream:
             client.end_stream(cfg.stream_id)
     return summary
+
+
+def scan_source(cfg: ReplayConfig) -> Iterator[Scan]:
+    """The scans to replay, read one by one: a recording's PointCloud2 messages or the scan files."""
+    if is_recording(cfg.source):
+        return islice(read_recording(cfg.source, cfg.topic, cfg.intensity_scale), cfg.max_scans)
+    if cfg.topic is not None or cfg.intensity_scale != 1.0:
+        raise ValueError(
+            f"{cfg.source}: a topic and an intensity scale are for ROS 2 recordings"
+            " (rosbag2 folder, .mcap, .db3)"
+        )
+    paths = find_scans(cfg.source)[: cfg.max_scans]
+    if not paths:
+        raise FileNotFoundError(f"{cfg.source}: no scans (.bin, .pcd.bin, .npz) and not a ROS 2 recording")
+    return (read_scan(p) for p in paths)
+
+
+def _scenes(path: Path | None) -> contextlib.AbstractContextManager[SceneChannels | None]:
+    return contextlib.nullcontext() if path is None else record_scenes(path)
 
 
 def _model_info(client: DetectorClient) -> dict[str, Any]:
@@ -82,14 +112,19 @@ def _model_info(client: DetectorClient) -> dict[str, Any]:
 
 
 def _run(
-    client: DetectorClient, cfg: ReplayConfig, paths: list[Path], spt: int, w: PredictionWriter
+    client: DetectorClient,
+    cfg: ReplayConfig,
+    scans: Iterator[Scan],
+    spt: int,
+    w: PredictionWriter,
+    scenes: SceneChannels | None = None,
 ) -> ReplaySummary:
     summary = ReplaySummary()
     period = 1.0 / (cfg.turns_per_s * spt) if cfg.turns_per_s > 0 else 0.0
     t0, seq = time.monotonic(), 0
-    for scan_index, path in enumerate(paths):
-        scan = read_scan(path)
+    for scan_index, scan in enumerate(scans):
         sectors = split_scan(scan.points, scan.fields, spt, scan.spin)
+        sent = [sector.points[:: cfg.every] for sector in sectors]  # (N_k, 4) each
         last: PredictionRecord | None = None
         for position, sector in enumerate(sectors):
             due = t0 + seq * period
@@ -102,8 +137,8 @@ def _run(
                 cfg.stream_id,
                 seq,
                 sector.index,
-                _stamp(scan, seq, period),
-                sector.points[:: cfg.every],
+                _stamp(scan, seq, position, period),
+                sent[position],
                 REQUIRED_FIELDS,
                 reset=seq == 0,
             )
@@ -116,11 +151,19 @@ def _run(
         summary.scans += 1
         if cfg.frames_dir is not None and last is not None:
             summary.frames.append(draw_scan(cfg.frames_dir, scan, last))
+        if scenes is not None and last is not None:
+            scenes.log(last, np.concatenate(sent), _stamp(scan, seq - len(sectors), 0, period))
+            summary.scenes += 1
     return summary
 
 
-def _stamp(scan: Scan, seq: int, period: float) -> int:
-    return (scan.timestamp_ns or 0) + round(seq * (period or 0.025) * 1e9)
+def _stamp(scan: Scan, seq: int, position: int, period: float) -> int:
+    """A sector's sensor time: its scan's stamp plus its place in the turn, or (scans without a stamp) the
+    drive's start plus its place in the drive."""
+    step = (period or 0.025) * 1e9
+    if scan.timestamp_ns is not None:
+        return scan.timestamp_ns + round(position * step)
+    return round(seq * step)
 
 
 def _send(

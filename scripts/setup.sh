@@ -12,4 +12,4 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 # CPU torch wheel pinned for local venvs and CI; GPU images install their CUDA build (see Dockerfile).
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check torch==2.13.0
-"$VENV/bin/python" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[server,clients,dev]"
+"$VENV/bin/python" -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[server,clients,ros2,dev]"

@@ -45,6 +45,8 @@ from server.warmup import package_version
 from server.worker import Worker
 
 if TYPE_CHECKING:
+    from server.live_view import LiveView
+    from server.ros2_bridge import Ros2Bridge
     from server.zenoh_transport import ZenohTransport
 
 log = logging.getLogger(__name__)
@@ -94,7 +96,7 @@ def build_detector(settings: Settings) -> tuple[Detector, str]:
     return det, source
 
 
-def start_zenoh(settings: Settings, worker: Worker) -> Closeable:
+def start_zenoh(settings: Settings, worker: Worker) -> ZenohTransport:
     try:
         from server.zenoh_transport import ZenohTransport
     except ImportError as e:
@@ -118,6 +120,44 @@ def start_zenoh(settings: Settings, worker: Worker) -> Closeable:
     return transport
 
 
+def start_live_view(settings: Settings, metrics: Metrics) -> LiveView | None:
+    """The live view when --foxglove-port is given (its port bound: a taken port fails the start-up)."""
+    if settings.foxglove_port is None:
+        return None
+    from server.live_view import LiveView  # foxglove-sdk is imported only when a live view runs
+
+    view = LiveView(settings.live_view_config(), metrics.live_view_dropped.inc)
+    view.start()
+    return view
+
+
+def start_ros2(settings: Settings, worker: Worker, zenoh: ZenohTransport | None) -> Ros2Bridge | None:
+    """The ROS 2 bridge when --ros2-points is given (docs/ros2.md): on the zenoh transport's session (with
+    --no-zenoh, its own from the same settings), in the ROS graph once the worker is warmed up."""
+    if settings.ros2_points is None:
+        return None
+    from server.ros2_bridge import Ros2Bridge  # rosbags is imported only when a bridge runs
+
+    bridge = Ros2Bridge(
+        partial(worker.submit, transport="ros2"),
+        settings.ros2_config(),
+        settings.limits(),
+        on_reject=lambda code: worker.metrics.count("ros2", code.value),
+        zenoh_cfg=settings.zenoh_config(),
+    )
+    bridge.open(None if zenoh is None else zenoh.session)
+    threading.Thread(target=_join_ros_graph_when_ready, args=(worker, bridge), daemon=True).start()
+    return bridge
+
+
+def _join_ros_graph_when_ready(worker: Worker, bridge: Ros2Bridge) -> None:
+    """The bridge's node, subscription and publishers once the worker is warmed up (never, if it fails)."""
+    while worker.live:
+        if worker.wait_ready(1.0):
+            bridge.announce(worker.det.cfg.sectors_per_turn)
+            return
+
+
 def _announce_when_ready(worker: Worker, transport: ZenohTransport) -> None:
     """The liveliness token once the worker is warmed up (never, if its start-up fails)."""
     while worker.live:
@@ -138,20 +178,27 @@ def create_app(
             return (detector, model_source) if detector is not None else build_detector(settings)
 
         metrics = Metrics()
-        worker = Worker(load, settings.worker_config(), metrics)
+        view = await asyncio.to_thread(start_live_view, settings, metrics)  # before any sector is answered
+        worker = Worker(load, settings.worker_config(), metrics, None if view is None else view.observe)
         worker.start()
-        zenoh: Closeable | None = None
+        zenoh: ZenohTransport | None = None
+        ros2: Closeable | None = None
         try:
             if settings.zenoh_enabled:
                 zenoh = await asyncio.to_thread(start_zenoh, settings, worker)
+            ros2 = await asyncio.to_thread(start_ros2, settings, worker, zenoh)
             app.state.services = Services(settings, worker, metrics, settings.limits(), tokens)
             yield
         finally:
             log.info("shutting down: draining (up to %.1f s)", settings.drain_timeout_s)
+            if ros2 is not None:  # before zenoh, whose session it shares: publishes its answers in flight
+                await asyncio.to_thread(ros2.close, settings.drain_timeout_s)
             if zenoh is not None:  # first: withdraw the liveliness token, answer zenoh's sectors in flight
                 await asyncio.to_thread(zenoh.close, settings.drain_timeout_s)
             await asyncio.to_thread(worker.close, settings.drain_timeout_s)
             log.info("worker %s stopped", worker.worker_id)
+            if view is not None:  # last: it shows the sectors the drain answered
+                await asyncio.to_thread(view.stop)
 
     app = FastAPI(title="PHiM detection server", version=package_version(), lifespan=lifespan)
     app.add_exception_handler(ServiceError, _service_error_handler)  # type: ignore[arg-type]

@@ -92,6 +92,11 @@ class Metrics:
             "phim_sector_latency_seconds", "Time from submit to reply inside the worker"
         )
         self.ready = Gauge("phim_ready", "1 when warmed up and taking sectors", registry=r)
+        self.live_view_dropped = Counter(
+            "phim_live_view_dropped",
+            "Answered sectors the live view (--foxglove-port) skipped: its queue was full",
+            registry=r,
+        )
 
     def _latency(self, name: str, doc: str) -> Histogram:
         return Histogram(name, doc, buckets=LATENCY_BUCKETS_S, registry=self.registry)

@@ -12,15 +12,18 @@ import socket
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from contract import DEFAULT_HTTP_PORT, DEFAULT_ZENOH_ENDPOINT, STREAM_ID_PATTERN, Limits
+from contract.ros2 import check_topic, default_detections_topic, default_stream_id, node_name
 from server.auth import TokenFile
 
 MAX_GRAPH_BATCH = 32  # the largest batch bucket of the fixed-shape step (model/graph/buckets.py)
 
 if TYPE_CHECKING:
+    from server.live_view import LiveViewConfig
+    from server.ros2_bridge import Ros2Config
     from server.worker import WorkerConfig
     from server.zenoh_transport import ZenohConfig
 
@@ -136,6 +139,51 @@ class Settings(BaseSettings):
         "several workers share a router: each answers only its own keys, and clients pick a stream's worker "
         "(--workers auto).",
     )
+    # ROS 2 bridge (docs/ros2.md): rmw_zenoh topics through the zenoh session above
+    ros2_points: str | None = Field(
+        None,
+        description="Take scans from this sensor_msgs/msg/PointCloud2 topic of a ROS 2 graph on rmw_zenoh "
+        "(e.g. /car1/lidar/points), each message a whole turn; unset: no ROS 2 bridge.",
+    )
+    ros2_detections: str | None = Field(
+        None,
+        description="Publish each sector's boxes on this vision_msgs/msg/Detection3DArray topic [default: "
+        "detections in the points topic's first namespace: /car1/detections].",
+    )
+    ros2_markers: str | None = Field(
+        None, description="Also publish them as visualization_msgs/msg/MarkerArray here (RViz); unset: not."
+    )
+    ros2_domain_id: int = Field(0, ge=0, description="The ROS graph's ROS_DOMAIN_ID.")
+    ros2_stream_id: str | None = Field(
+        None,
+        pattern=STREAM_ID_PATTERN,
+        max_length=128,
+        description="The stream the scans go to [default: the points topic's first namespace: car1].",
+    )
+    ros2_intensity_scale: float = Field(
+        1.0,
+        gt=0,
+        description="Multiplies every point's intensity: the model reads 0..1, so 0.00392156862745098 "
+        "(1/255) for drivers publishing 0..255 (velodyne_pointcloud, Ouster, Hesai, Livox), 1 for 0..1.",
+    )
+    ros2_partial_scans: bool = Field(
+        False,
+        description="Each PointCloud2 is a piece of a turn (cut into sectors as the points come), not a "
+        "whole turn.",
+    )
+    # live view (docs/ros2.md)
+    foxglove_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="Serve a live view on this port: a Foxglove WebSocket server with each stream's latest "
+        "sector's points and boxes (0: a free port; unset: no live view).",
+    )
+    foxglove_host: str = Field(
+        "127.0.0.1",
+        description="The live view's bind address; it has no authentication, so beyond loopback it needs "
+        "--insecure.",
+    )
     # identity and logs
     worker_id: str = Field(
         default_factory=default_worker_id,
@@ -159,7 +207,8 @@ class Settings(BaseSettings):
     insecure: bool = Field(
         False,
         description="Allow an HTTP host beyond loopback without --auth-tokens (anyone reaching it "
-        "may drive, read and end every stream).",
+        "may drive, read and end every stream), and a live view (--foxglove-host) beyond loopback (anyone "
+        "reaching it sees every stream's points and boxes).",
     )
 
     @model_validator(mode="after")
@@ -177,6 +226,17 @@ class Settings(BaseSettings):
                 f"host {self.host}: beyond loopback without --auth-tokens anyone who reaches the port may "
                 "send to, read and end every stream; give --auth-tokens FILE (phim auth add-token), or "
                 "--insecure (PHIM_INSECURE=1) to accept that"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _live_view_only_on_loopback(self) -> Settings:
+        # the Foxglove server has no authentication: --auth-tokens does not cover it
+        if self.foxglove_port is not None and not self.insecure and not is_loopback(self.foxglove_host):
+            raise ValueError(
+                f"foxglove_host {self.foxglove_host}: the live view has no authentication, so anyone who "
+                "reaches the port sees every stream's points and boxes; give --insecure (PHIM_INSECURE=1) "
+                "to accept that, or keep it on loopback (an SSH tunnel or an authenticating proxy)"
             )
         return self
 
@@ -203,6 +263,13 @@ class Settings(BaseSettings):
             return tuple(v.strip() for v in value.split(",") if v.strip())
         return value
 
+    @field_validator("ros2_points", "ros2_detections", "ros2_markers", mode="before")
+    @classmethod
+    def _ros2_topic(cls, value: Any, info: ValidationInfo) -> Any:
+        if value == "":  # PHIM_ROS2_MARKERS= : unset
+            return None
+        return check_topic(value, info.field_name) if isinstance(value, str) else value
+
     @field_validator("log_level", "log_format", mode="before")
     @classmethod
     def _lower(cls, value: Any) -> Any:
@@ -225,6 +292,34 @@ class Settings(BaseSettings):
             max_streams=self.max_streams,
             warmup_sectors=self.warmup_sectors,
             capacity_headroom=self.capacity_headroom,
+        )
+
+    def live_view_config(self) -> LiveViewConfig:
+        from server.live_view import LiveViewConfig
+
+        assert self.foxglove_port is not None, "no live view without --foxglove-port"
+        # its channels outlive a stream's eviction a little: a viewer sees the last boxes, then they go
+        return LiveViewConfig(
+            host=self.foxglove_host,
+            port=self.foxglove_port,
+            idle_s=2 * self.idle_timeout_s,
+            name=self.worker_id,
+        )
+
+    def ros2_config(self) -> Ros2Config:
+        """The bridge's settings, defaults filled in."""
+        from server.ros2_bridge import Ros2Config
+
+        assert self.ros2_points is not None, "no ROS 2 bridge without --ros2-points"
+        return Ros2Config(
+            points=self.ros2_points,
+            detections=self.ros2_detections or default_detections_topic(self.ros2_points),
+            markers=self.ros2_markers,
+            domain_id=self.ros2_domain_id,
+            stream_id=self.ros2_stream_id or default_stream_id(self.ros2_points),
+            intensity_scale=self.ros2_intensity_scale,
+            partial_scans=self.ros2_partial_scans,
+            node_name=node_name(self.worker_id),
         )
 
     def zenoh_config(self) -> ZenohConfig:

@@ -35,6 +35,8 @@ from server.warmup import model_info, warm_up
 log = logging.getLogger(__name__)
 
 Answer = tuple[Future[DetectionsReply], str, DetectionsReply | ServiceError]  # future, transport, outcome
+# sees each answered sector with its reply, in the device thread after the answer: must be cheap, never block
+Observer = Callable[[SectorMessage, DetectionsReply], None]
 
 
 @dataclass(frozen=True)
@@ -64,8 +66,10 @@ class Worker:
         load: Callable[[], tuple[Detector, str]],
         cfg: WorkerConfig = WorkerConfig(),
         metrics: Metrics | None = None,
+        observer: Observer | None = None,
     ):
         self._load = load
+        self._observer = observer  # the live view (server/live_view.py); None: nothing watches
         self._det: Detector | None = None
         self._source = ""  # where the weights came from (for /v1/model)
         self.cfg = cfg
@@ -354,6 +358,19 @@ class Worker:
             for p, new_state, gap in zip(batch, new_states, gaps, strict=True):
                 self._finish(p, new_state, gap)
         self._settle(outcomes)
+        if self._observer is not None:
+            self._observe(self._observer, batch, outcomes)
+
+    @staticmethod
+    def _observe(observer: Observer, batch: list[Pending], outcomes: list[Answer]) -> None:
+        """After the answers (a watcher never delays a reply): each answered sector to the observer; what it
+        raises is logged, never the batch's failure."""
+        for p, (_, _, out) in zip(batch, outcomes, strict=True):
+            if isinstance(out, DetectionsReply):
+                try:
+                    observer(p.msg, out)
+                except Exception:
+                    log.exception("observer failed on %s seq %d; serving goes on", p.msg.stream_id, p.msg.seq)
 
     @staticmethod
     def _gap(p: Pending) -> int:

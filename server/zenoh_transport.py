@@ -199,6 +199,12 @@ class ZenohTransport:
         log.info("zenoh: worker %s announced (%s)", self.worker_id, self.token_key)
 
     @property
+    def session(self) -> zenoh.Session | None:
+        """The open session (None before `start` and after `close`): the ROS 2 bridge shares it, since a
+        second session could not listen on the same endpoints."""
+        return self._session
+
+    @property
     def token_key(self) -> str:
         """The worker's liveliness token: `{prefix}/workers/{worker_id}/{zenoh session ID}`."""
         assert self._session is not None

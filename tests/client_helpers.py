@@ -18,8 +18,8 @@ from server_helpers import RunningServer, free_endpoint, serve
 
 from clients.connect import ConnectConfig, Transport
 from clients.loadtest.config import LoadTestConfig, SourceConfig
-from clients.sectorizer import split_scan
 from model.data.readers import read_scan
+from model.data.sectorizer import split_scan
 from model.stream import StreamingDetector
 from server.zenoh_transport import ZenohConfig, open_session
 

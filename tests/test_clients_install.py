@@ -21,7 +21,7 @@ from model.data.synthetic import synthetic_turn
 SOURCES = ("pyproject.toml", "README.md", "LICENSE", "contract", "phim", "model", "server", "clients")
 CLIENT_CODE = """
 from clients.http_client import HttpClient
-from clients.sectorizer import split_scan
+from model.data.sectorizer import split_scan
 from model.data.synthetic import synthetic_turn
 turn = synthetic_turn(seed=1)[::8]
 with HttpClient("{url}") as client:

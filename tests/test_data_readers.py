@@ -13,7 +13,7 @@ import pytest
 import torch
 from conftest import SHARED_DATA
 
-import clients.sectorizer
+import model.data.sectorizer
 from model.config import CLASS_NAMES
 from model.data.datasets import DataKind, DataSpec, list_scan_paths, parse_data_spec
 from model.data.labels import labels_for, nuscenes_boxes_path, read_kitti_labels, read_nuscenes_boxes
@@ -36,7 +36,7 @@ def _kitti_types(root: Path, name: str) -> list[str]:
 
 
 def test_spin_moved_with_the_readers() -> None:
-    assert clients.sectorizer.Spin is Spin
+    assert model.data.sectorizer.Spin is Spin
 
 
 @pytest.mark.samples

@@ -31,7 +31,7 @@ from server.zenoh_transport import ZenohConfig, ZenohTransport, open_session
 
 KEYS = KeySpace()
 SPT = 4  # sectors per turn of the default model
-TURNS_PER_S = 1.0
+TURNS_PER_S = 0.5  # light enough that a 2-core machine also running a warm-up never misses a deadline
 PERIOD_S = 1 / (SPT * TURNS_PER_S)  # between two sectors of a vehicle
 VEHICLES = 12
 SLACK_S = 1.0  # a 2-core machine running 4 workers, a router and the load test: model time and noise
@@ -70,7 +70,7 @@ class TokenWatch:
 
 def run_loadtest(fleet: Fleet, tag: str, duration_s: float, out: Path, log: Any) -> subprocess.Popen[bytes]:
     cmd = [sys.executable, "-m", "phim", "loadtest", "--transport", "zenoh", "--zenoh-connect", fleet.router]
-    cmd += ["--workers", "auto", "--url", fleet.workers["w0"].url, "--synthetic", "--every", "8"]
+    cmd += ["--workers", "auto", "--url", fleet.workers["w0"].url, "--synthetic", "--every", "16"]
     cmd += ["--vehicles", str(VEHICLES), "--turns-per-s", str(TURNS_PER_S), "--sectors-per-turn", str(SPT)]
     cmd += ["--duration", str(duration_s), "--stream-prefix", "fleet", "--stream-tag", tag]
     cmd += ["--no-progress", "--timeout", "5", "--out", str(out)]
@@ -99,13 +99,13 @@ def moves(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def assert_context_rebuilds(rows: list[dict[str, Any]]) -> None:
-    """After every cold start a stream's context grows by one sector per sector until it holds a turn, in
-    the order the worker ran them (a moved stream's resent sectors may run out of seq order): so it has a
-    full turn again one turn after its last restart."""
-    since = 0
+    """After every cold start a stream's context grows by one sector per sector until it holds a turn, on
+    each worker in the order it ran them (a moved stream's resent sectors may run out of seq order, and the
+    old owner may still answer what it had when the new one starts): a full turn again one turn later."""
+    since: dict[str, int] = {}
     for r in sorted(rows, key=lambda r: r["answered_at"]):
-        since = 0 if r["cold_start"] else since + 1
-        assert r["context_sectors"] == min(since + 1, SPT), r
+        since[r["worker"]] = 0 if r["cold_start"] else since[r["worker"]] + 1
+        assert r["context_sectors"] == min(since[r["worker"]] + 1, SPT), r
 
 
 def test_a_fleet_moves_a_dead_workers_streams_and_gives_a_joining_worker_its_share(tmp_path: Path) -> None:
@@ -117,7 +117,7 @@ def test_a_fleet_moves_a_dead_workers_streams_and_gives_a_joining_worker_its_sha
             time.sleep(7.0)  # every stream under way on its first owner
             victim = fleet.workers["w1"].process
             victim.send_signal(signal.SIGSTOP)  # hung: its streams' sectors wait in flight
-            time.sleep(0.5)
+            time.sleep(1.5 * PERIOD_S)
             killed = time.time()
             victim.send_signal(signal.SIGKILL)
             time.sleep(1.0)

@@ -40,6 +40,7 @@ PHIM_FAMILIES = {  # name (as the parser gives it: a counter's without `_total`)
     "phim_model_latency_seconds": "histogram",
     "phim_sector_latency_seconds": "histogram",
     "phim_ready": "gauge",
+    "phim_live_view_dropped": "counter",
     "phim_heap_in_use_bytes": "gauge",  # glibc
     "phim_heap_free_bytes": "gauge",
 }

@@ -66,7 +66,8 @@ def test_dockerfile_essentials():
     assert users and users[-1] not in ("root", "0")
     assert words.index("USER") < words.index("CMD")
     runs = " ".join(rest for w, rest in ins if w == "RUN")
-    assert '".[server]"' in runs and "torch-constraint" in runs  # never reinstalls the base image's torch
+    # never reinstalls the base image's torch
+    assert '".[server,ros2]"' in runs and "torch-constraint" in runs
     assert "-c constraints.txt" in runs  # the pinned versions CI runs with
     copied = {rest.split()[0] for w, rest in ins if w == "COPY"}
     packages = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]

@@ -40,11 +40,11 @@ from clients.base import DetectorClient, sector_message
 from clients.bench.echo import ECHO_KEY, ECHO_PATH, HELD, request_header
 from clients.connect import ConnectConfig, Transport, make_client
 from clients.options import zenoh_connect_option
-from clients.sectorizer import split_scan
 from clients.zenoh_session import open_session
 from contract import REQUIRED_FIELDS, encode_reply, encode_sector
 from model.data.readers import Spin, read_scan
 from model.data.samples import KITTI_000000
+from model.data.sectorizer import split_scan
 from model.data.synthetic import synthetic_turn
 from phim.options import EnumValue, json_option
 

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from clients.loadtest.config import SourceConfig
-from clients.sectorizer import Spin, split_scan
 from contract import REQUIRED_FIELDS
 from model.data.readers import find_scans, read_scan
+from model.data.sectorizer import Spin, split_scan
 from model.data.synthetic import synthetic_turn
 
 Turn = list[tuple[int, np.ndarray]]  # (sector_index, (N, 4) float32) in sweep order

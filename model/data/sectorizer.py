@@ -1,4 +1,4 @@
-"""Cut LiDAR data into the model's azimuth sectors, on the client side (numpy only).
+"""Cut LiDAR data into the model's azimuth sectors (numpy only: clients and the server's ROS 2 bridge use it).
 
 Sector k of K covers azimuth [-pi + k * 2pi/K, -pi + (k + 1) * 2pi/K), azimuth = atan2(y, x) in the sensor
 frame (x forward, y left, z up), the same split as the model's polar grid (`model.sectors`).
