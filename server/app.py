@@ -7,11 +7,9 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import threading
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
-from functools import partial
 from typing import TYPE_CHECKING, Any, Protocol
 
 from fastapi import FastAPI, Request, Response
@@ -41,12 +39,11 @@ from server.default_model import init_model, load_default_model
 from server.metrics import Metrics
 from server.openapi import error_responses, publish_sector_route
 from server.settings import Settings
+from server.transports import start_live_view, start_ros2, start_zenoh
 from server.warmup import package_version
 from server.worker import Worker
 
 if TYPE_CHECKING:
-    from server.live_view import LiveView
-    from server.ros2_bridge import Ros2Bridge
     from server.zenoh_transport import ZenohTransport
 
 log = logging.getLogger(__name__)
@@ -94,76 +91,6 @@ def build_detector(settings: Settings) -> tuple[Detector, str]:
         source,
     )
     return det, source
-
-
-def start_zenoh(settings: Settings, worker: Worker) -> ZenohTransport:
-    try:
-        from server.zenoh_transport import ZenohTransport
-    except ImportError as e:
-        raise RuntimeError(f"zenoh transport unavailable ({e}); serve with --no-zenoh") from e
-
-    transport = ZenohTransport(
-        partial(worker.submit, transport="zenoh"),
-        settings.zenoh_config(),
-        worker.worker_id,
-        settings.limits(),
-        on_reject=lambda code: worker.metrics.count("zenoh", code.value),
-    )
-    transport.start(announce=False)
-    log.info(
-        "zenoh: mode=%s listen=%s connect=%s",
-        settings.zenoh_mode,
-        settings.zenoh_listen,
-        settings.zenoh_connect,
-    )
-    threading.Thread(target=_announce_when_ready, args=(worker, transport), daemon=True).start()
-    return transport
-
-
-def start_live_view(settings: Settings, metrics: Metrics) -> LiveView | None:
-    """The live view when --foxglove-port is given (its port bound: a taken port fails the start-up)."""
-    if settings.foxglove_port is None:
-        return None
-    from server.live_view import LiveView  # foxglove-sdk is imported only when a live view runs
-
-    view = LiveView(settings.live_view_config(), metrics.live_view_dropped.inc)
-    view.start()
-    return view
-
-
-def start_ros2(settings: Settings, worker: Worker, zenoh: ZenohTransport | None) -> Ros2Bridge | None:
-    """The ROS 2 bridge when --ros2-points is given (docs/ros2.md): on the zenoh transport's session (with
-    --no-zenoh, its own from the same settings), in the ROS graph once the worker is warmed up."""
-    if settings.ros2_points is None:
-        return None
-    from server.ros2_bridge import Ros2Bridge  # rosbags is imported only when a bridge runs
-
-    bridge = Ros2Bridge(
-        partial(worker.submit, transport="ros2"),
-        settings.ros2_config(),
-        settings.limits(),
-        on_reject=lambda code: worker.metrics.count("ros2", code.value),
-        zenoh_cfg=settings.zenoh_config(),
-    )
-    bridge.open(None if zenoh is None else zenoh.session)
-    threading.Thread(target=_join_ros_graph_when_ready, args=(worker, bridge), daemon=True).start()
-    return bridge
-
-
-def _join_ros_graph_when_ready(worker: Worker, bridge: Ros2Bridge) -> None:
-    """The bridge's node, subscription and publishers once the worker is warmed up (never, if it fails)."""
-    while worker.live:
-        if worker.wait_ready(1.0):
-            bridge.announce(worker.det.cfg.sectors_per_turn)
-            return
-
-
-def _announce_when_ready(worker: Worker, transport: ZenohTransport) -> None:
-    """The liveliness token once the worker is warmed up (never, if its start-up fails)."""
-    while worker.live:
-        if worker.wait_ready(1.0):
-            transport.announce()
-            return
 
 
 def create_app(

@@ -45,11 +45,10 @@ from model.data.pointcloud2 import cloud_spin, decode_pointcloud2, pointcloud2_p
 from model.data.sectorizer import StreamSectorizer, split_scan
 from server import ros2_messages as messages
 from server.ros2_messages import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2, Header
-from server.zenoh_transport import JOIN_TIMEOUT_S, ZenohConfig, open_session
+from server.zenoh_transport import JOIN_TIMEOUT_S, Submit, ZenohConfig, open_session, submit_or_fail
 
 log = logging.getLogger(__name__)
 
-Submit = Callable[[SectorMessage], "Future[DetectionsReply]"]
 # messages zenoh holds for the receiver before it pushes back (on rmw_zenoh's keep-last publishers, which
 # then drop): a second and a half of whole turns at 10 Hz, or many packets of a partial scan
 CHANNEL_CAPACITY = {False: 16, True: 256}  # partial_scans -> messages
@@ -311,12 +310,7 @@ class Ros2Bridge:
         self._seq += 1
         with self._cond:
             self._inflight.add(job)
-        try:
-            future = self.submit(msg)
-        except Exception as e:  # submit should fail its future instead; answer anyway
-            log.exception("ros2: submit raised for %s seq %d", msg.stream_id, msg.seq)
-            future = Future()
-            future.set_exception(e)
+        future = submit_or_fail(self.submit, msg)
         future.add_done_callback(partial(self._settled, job))
 
     def _reject(self, code: ErrorCode, why: str) -> None:

@@ -291,12 +291,7 @@ class ZenohTransport:
         job.stream_id, job.seq = msg.stream_id, msg.seq
         with self._cond:
             self._inflight.add(job)
-        try:
-            future = self.submit(msg)
-        except Exception as e:  # submit should fail its future instead; answer anyway
-            log.exception("submit raised for %s seq %d", msg.stream_id, msg.seq)
-            future = Future()
-            future.set_exception(e)
+        future = submit_or_fail(self.submit, msg)
         future.add_done_callback(partial(self._settled, job))
 
     def _reject(self, job: _Job, e: ServiceError) -> None:
@@ -345,6 +340,18 @@ class ZenohTransport:
         self._session.put(
             key, payload, encoding=MSGPACK_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
         )
+
+
+def submit_or_fail(submit: Submit, msg: SectorMessage) -> Future[DetectionsReply]:
+    """`submit(msg)`, whose future answers the sector; a submit that raises (it should fail its future
+    instead) gives a failed future, so that the sector is answered all the same."""
+    try:
+        return submit(msg)
+    except Exception as e:
+        log.exception("submit raised for %s seq %d", msg.stream_id, msg.seq)
+        future: Future[DetectionsReply] = Future()
+        future.set_exception(e)
+        return future
 
 
 def _recv(channel: zenoh.handlers.Handler[T]) -> T | None:

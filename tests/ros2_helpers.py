@@ -9,10 +9,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from contract import DetectionsReply, SectorMessage, Timings
 from model.data.pointcloud2 import POINT_FIELD_TYPES, POINTCLOUD2, typestore
+from server import ros2_messages as messages
 
 FLOAT32, FLOAT64, UINT8, UINT16, UINT32 = 7, 8, 2, 4, 6
 
@@ -236,3 +239,30 @@ def sample_turns(count: int = 2, every: int = 1) -> list[np.ndarray]:
     if KITTI_VELODYNE.exists() or REQUIRE_SAMPLES:
         return [kitti_scan(i).numpy()[::every].copy() for i in range(count)]
     return [synthetic_turn(seed=i)[::every].copy() for i in range(count)]
+
+
+def reply_for(msg: SectorMessage, n_boxes: int = 2) -> DetectionsReply:
+    """A made-up answer that names its sector: box centres at the sector's mean point, yaw = index - 1."""
+    centre = msg.points[:, :3].mean(axis=0) if len(msg.points) else np.zeros(3, np.float32)
+    boxes = np.array([[*centre, 4.0, 2.0, 1.5, msg.sector_index - 1.0]] * n_boxes, np.float32)  # (K, 7)
+    scores = np.linspace(0.9, 0.5, n_boxes).astype(np.float32)
+    return DetectionsReply(
+        msg.stream_id, msg.seq, boxes, scores, np.zeros(n_boxes, np.int32), ("VEHICLE",) * n_boxes, 1, 0,
+        Timings(1.0, 1.0, 2.0),
+    )  # fmt: skip
+
+
+def assert_boxes(array: Any, reply: DetectionsReply, atol: float = 1e-5) -> None:
+    """A decoded Detection3DArray holds exactly the reply's boxes, in order."""
+    assert len(array.detections) == len(reply.boxes)
+    for d, box, score, name in zip(
+        array.detections, reply.boxes, reply.scores, reply.class_names, strict=True
+    ):
+        c, s, h = d.bbox.center, d.bbox.size, d.results[0].hypothesis
+        got = [c.position.x, c.position.y, c.position.z, s.x, s.y, s.z]
+        np.testing.assert_allclose(got, box[:6], atol=atol, rtol=0)
+        yaw = messages.yaw_of(c.orientation)
+        assert abs(np.angle(np.exp(1j * (yaw - box[6])))) < 1e-5, (yaw, box[6])
+        assert (h.class_id, len(d.results)) == (name, 1)
+        assert abs(h.score - score) < atol
+        assert d.results[0].pose.pose == c
