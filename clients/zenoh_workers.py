@@ -29,7 +29,7 @@ class LiveWorkers:
         self.session = session
         self.keys = keys
         self._by_zid: dict[str, str] = {}
-        self._lock = threading.Lock()
+        self._changed = threading.Condition()
         self._subscriber = session.liveliness().declare_subscriber(
             keys.worker("*", "*"), self._on_token, history=True
         )
@@ -39,33 +39,38 @@ class LiveWorkers:
         if found is None:
             return
         worker_id, zid = found
-        with self._lock:
+        with self._changed:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._by_zid[zid] = worker_id
             else:
                 self._by_zid.pop(zid, None)
+            self._changed.notify_all()
 
     def refresh(self, timeout_s: float) -> None:
-        """Ask for the tokens now: a worker may answer before its token's sample reached the subscriber, and
-        a client that lost a worker's answer wants to know now whether that worker is gone. The answer
-        replaces what the subscriber kept, unless the get ended with an error (its timeout): then it adds."""
+        """Ask for the tokens now (a worker may answer before its token's sample reached the subscriber).
+        It only adds: a liveliness get may come back short (seen under the ACL), so only the subscriber's
+        DELETE, which zenoh sends when a token is withdrawn or its session is lost, removes a worker."""
         found: dict[str, str] = {}
-        complete = True
         for reply in self.session.liveliness().get(self.keys.worker("*", "*"), timeout=timeout_s):
             token = self.keys.worker_of(str(reply.ok.key_expr)) if reply.ok is not None else None
-            complete = complete and reply.ok is not None
             if token is not None:
                 found[token[1]] = token[0]
-        with self._lock:
-            self._by_zid = found if complete else {**self._by_zid, **found}
+        with self._changed:
+            self._by_zid.update(found)
+
+    def wait_gone(self, worker_id: str, timeout_s: float) -> bool:
+        """Whether `worker_id` holds no token any more, waiting up to `timeout_s` for its DELETE (a get that
+        failed because its worker died may end before the token's DELETE reaches this session)."""
+        with self._changed:
+            return self._changed.wait_for(lambda: worker_id not in self._by_zid.values(), timeout_s)
 
     def worker_at(self, zid: str) -> str | None:
         """The worker ID of the session `zid`, or None if that session holds no worker token."""
-        with self._lock:
+        with self._changed:
             return self._by_zid.get(zid)
 
     def ids(self) -> list[str]:
-        with self._lock:
+        with self._changed:
             return sorted(set(self._by_zid.values()))
 
     def close(self) -> None:
@@ -104,6 +109,5 @@ class StreamOwners:
         return workers
 
     def gone(self, worker: str) -> bool:
-        """Whether `worker` has left (its token is gone), asked for now."""
-        self.live.refresh(self.refresh_timeout_s)
-        return worker not in self.live.ids()
+        """Whether `worker` has left (its token is gone), waiting `refresh_timeout_s` at most to hear so."""
+        return self.live.wait_gone(worker, self.refresh_timeout_s)

@@ -24,6 +24,13 @@ def _int(name: str, default: int, minimum: int, help_text: str):
 @_int("--steps", 6000, 1, "Optimizer steps (the one-cycle schedule spans them).")
 @_int("--batch-size", 1, 1, "Scans per step and process.")
 @click.option("--lr", type=float, default=3e-3, show_default=True, help="Peak learning rate (one-cycle).")
+@click.option(
+    "--weight-decay",
+    type=click.FloatRange(0),
+    default=0.05,
+    show_default=True,
+    help="AdamW weight decay on weight matrices and kernels (none on biases, norms, Mamba's A_log and D).",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Sim stream and augmentation seed.")
 @_int("--workers", 1, 0, "Data-loader processes per training process.")
 @_int("--checkpoint-every", 200, 1, "Steps between checkpoints.")
@@ -56,6 +63,7 @@ def train_cmd(
     steps: int,
     batch_size: int,
     lr: float,
+    weight_decay: float,
     seed: int,
     workers: int,
     checkpoint_every: int,
@@ -83,6 +91,7 @@ def train_cmd(
         steps=steps,
         batch_size=batch_size,
         lr=lr,
+        weight_decay=weight_decay,
         seed=seed,
         workers=workers,
         checkpoint_every=checkpoint_every,

@@ -32,6 +32,7 @@ from model.detector import PHiM
 from model.train.data import SampleConfig, SampleStream, TrainSample
 from model.train.distributed import Dist
 from model.train.loss import LossConfig, LossParts
+from model.train.optim import make_optimizer
 from model.train.step import TrainStep
 
 log = logging.getLogger("phim.train")
@@ -45,7 +46,7 @@ class TrainConfig:
     steps: int = 6000
     batch_size: int = 1  # scans per step and process
     lr: float = 3e-3  # one-cycle peak
-    weight_decay: float = 0.01
+    weight_decay: float = 0.05  # the paper's; none on biases, norms, A_log and D (model/train/optim.py)
     grad_clip: float = 10.0
     pct_start: float = 0.3  # share of the steps spent warming up to the peak
     div_factor: float = 10.0  # start lr = peak / div_factor
@@ -198,7 +199,7 @@ def train(
         model.load_state_dict(start_from.state_dict())
         log.info("starting from the weights of %s", cfg.init)
     step_fn: nn.Module = dist.wrap(TrainStep(model, cfg.loss))
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    opt = make_optimizer(model, cfg.lr, cfg.weight_decay)
     start = 0
     if resume:
         _check_resume(out, cfg)
