@@ -101,7 +101,11 @@ def run_server(settings: Settings) -> None:
     server = uvicorn.Server(uvicorn_config(create_app(settings), settings))
     for sig in (signal.SIGINT, signal.SIGTERM):  # uvicorn re-raises the signal after its graceful shutdown:
         signal.signal(sig, _after_shutdown)  # end with exit code 0 instead of dying by it again
-    server.run()
+    try:
+        server.run()
+    except SystemExit:  # uvicorn exits with 3 when the app's start-up (zenoh, the live view, ...) fails
+        if server.started:
+            raise
     if not server.started:
         raise SystemExit(1)  # startup failed (the log says why)
 

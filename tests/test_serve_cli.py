@@ -10,6 +10,7 @@ import os
 import re
 import shlex
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -90,6 +91,17 @@ def test_the_image_command_refuses_to_serve_all_interfaces_without_tokens():
     r = subprocess.run([str(BIN / cmd[0]), *cmd[1:]], env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2, r.stderr[-2000:]
     assert "host 0.0.0.0: beyond loopback without --auth-tokens" in r.stderr and "PHIM_INSECURE=1" in r.stderr
+
+
+def test_a_start_up_that_fails_exits_with_code_1():
+    """The documented exit code when the server cannot start: here its zenoh endpoint is taken."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        endpoint = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        cmd = [str(BIN / "phim"), "serve", "--port", str(free_port()), "--zenoh-listen", endpoint]
+        r = subprocess.run([*cmd, "--warmup-sectors", "1"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and "Address already in use" in r.stderr, (r.returncode, r.stderr[-800:])
 
 
 def test_compose_essentials():

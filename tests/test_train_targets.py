@@ -140,6 +140,21 @@ def test_sample_sectors_in_time_order_and_targets_grow_with_the_buffer():
     assert counts[0] == int((box_sector == ks[0]).sum())
 
 
+def test_a_box_beyond_the_polar_range_is_not_a_target():
+    """The BEV square's corners lie beyond r_max: a box there (with points in the labels, none the model
+    keeps) gets no heatmap peak; the same box just inside the range does."""
+    corner = 0.97 * CFG.bev.x_max  # inside the BEV map, about 1.37 x_max from the sensor: beyond r_max
+    assert math.hypot(corner, corner) > CFG.grid.r_max
+    inside = CFG.grid.r_max * 0.9 / math.sqrt(2)
+    boxes = np.array([[corner, corner, -0.9, 4.5, 1.9, 1.6, 0.0], [inside, inside, -0.9, 4.5, 1.9, 1.6, 0.0]])
+    scan = _scan()
+    gt = GroundTruth(boxes.astype(np.float32), np.array([0, 0]), np.array([50, 50]), np.zeros(2, np.int64))
+    far = LabeledScan(scan.name, scan.points, scan.fields, gt)
+    s = make_sample(far, CFG, SampleConfig(augment=AugmentConfig(rotate=False, flip=False, scale=(1.0, 1.0))),
+                    np.random.default_rng(0))  # fmt: skip
+    np.testing.assert_allclose(s.targets[-1].boxes[:, :2], boxes[1:, :2], atol=1e-4)
+
+
 @pytest.mark.parametrize("bad", [0])
 def test_a_box_without_points_is_not_a_target(bad):
     scan = _scan()

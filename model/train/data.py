@@ -71,6 +71,16 @@ def augment(
     return p, b
 
 
+def is_target(boxes: np.ndarray, num_points: np.ndarray, model_cfg: PHiMConfig) -> np.ndarray:
+    """boxes (M, 7), their points (M,) -> (M,) bool: which boxes the model is asked to find. A box without
+    points is not a target (Waymo); neither is one whose centre lies outside the polar grid's range: the
+    square BEV map reaches beyond r_max in its corners (and inside r_min), where the voxelizer keeps no
+    point, and a peak there would teach the heatmap to fire on nothing."""
+    grid = model_cfg.grid
+    r = np.hypot(boxes[:, 0], boxes[:, 1])  # (M,)
+    return (num_points > 0) & (r >= grid.r_min) & (r < grid.r_max)
+
+
 def make_sample(
     scan: LabeledScan, model_cfg: PHiMConfig, cfg: SampleConfig, rng: np.random.Generator
 ) -> TrainSample:
@@ -81,7 +91,7 @@ def make_sample(
     order = [(start + i) % n for i in range(n)]
     point_sector = sector_of_xy(points[:, 0], points[:, 1], n)  # (N,)
     box_sector = sector_of_xy(boxes[:, 0], boxes[:, 1], n)  # (M,)
-    target = scan.gt.num_points > 0  # a box without points is not a target (Waymo)
+    target = is_target(boxes, scan.gt.num_points, model_cfg)
     sectors = [torch.from_numpy(np.ascontiguousarray(points[point_sector == k])) for k in order]
     targets = []
     for k in range(n):
