@@ -13,7 +13,7 @@ from model.geometry.boxes import Detections
 from model.layers.head import HEATMAP_PRIOR_BIAS, CenterHead, HeadOutput, decode, local_maxima
 
 BEV = BEVConfig(x_min=-20.48, x_max=20.48, y_min=-10.24, y_max=10.24, cell=0.32)  # 128 x 64 cells
-CFG = HeadConfig()  # thresholds 0.75 / 0.6 / 0.55, rectifier 0.68 / 0.71 / 0.65, score threshold 0.1
+CFG = HeadConfig()  # NMS 0.75 / 0.6 / 0.55, rectifier 0.68 / 0.71 / 0.65, heatmap score threshold 0.1
 
 
 @dataclasses.dataclass
@@ -116,11 +116,14 @@ def test_decode_recovers_planted_boxes() -> None:
         Planted((10.01, 9.9, 0.2, 1.8, 0.6, 1.7, math.pi / 2), 2, 0.5, 0.9),
     ]
     item1 = [Planted((-20.3, -10.1, 1.0, 5.0, 2.1, 1.9, -1.0), 0, 0.6, 0.7)]  # corner cell (0, 0)
+    # the threshold applies to the heatmap score, before the IoU rectification (CenterPoint, OpenPCDet)
+    kept = Planted((8.0, -8.0, 0.0, 1.0, 1.0, 1.0, 0.0), 0, 0.3, 0.01)  # heatmap 0.3, rectified 0.03
     dropped = [
-        Planted((0.5, 0.5, 0.0, 1.0, 1.0, 1.0, 0.0), 1, 0.02, 0.05),  # score 0.03: below the threshold
-        Planted((8.0, -8.0, 0.0, 1.0, 1.0, 1.0, 0.0), 0, 0.3, 0.01),  # heatmap 0.3, rectified 0.03
+        Planted((0.5, 0.5, 0.0, 1.0, 1.0, 1.0, 0.0), 1, 0.02, 0.05),  # heatmap and score below it
+        Planted((-8.0, 8.0, 0.0, 1.0, 1.0, 1.0, 0.0), 2, 0.08, 0.99),  # heatmap 0.08, rectified 0.19
     ]
-    assert all(p.score(CFG) < CFG.score_threshold for p in dropped)
+    assert kept.score(CFG) < CFG.score_threshold < dropped[1].score(CFG)
+    item0.append(kept)
     out = plant([item0 + dropped, item1], BEV)
     row, col, _, _ = cell_of(item0[0], BEV)
     out.heatmap[0, 0, row, col + 1] = math.log(0.85 / 0.15)  # a neighbour, not a local maximum: no box

@@ -299,7 +299,7 @@ class GraphStreamingDetector:
 
     def _results(self, cand: Tensor, stats: Tensor, states: list[SlotState]) -> list[SectorResult]:
         """cand (n, K, 10), stats (n, 3) on the host -> each stream's detections after NMS."""
-        c = Candidates(cand[..., :7], cand[..., 7], cand[..., 8].long(), cand[..., 9] > 0)
+        c = Candidates(cand[..., :7], cand[..., 7], cand[..., 8].long(), cand[..., 9])
         dets: list[Detections] = select_detections(c, self.cfg.head)
         kept, out_of_range = STATS.index("points_kept"), STATS.index("points_out_of_range")
         return [

@@ -65,7 +65,7 @@ class HostLayout:
 
     @property
     def candidate_width(self) -> int:
-        return 10  # box (7), score, label, is_peak
+        return 10  # box (7), score, label, heatmap score
 
     def split(self, host: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """-> candidates (B, K, 10), stats (B, len(STATS)), site counts (F,) int64."""
@@ -203,7 +203,7 @@ class GraphStep(nn.Module):
                 cand.boxes,
                 cand.scores[..., None],
                 cand.labels[..., None].float(),
-                cand.is_peak[..., None].float(),
+                cand.heat[..., None],
             ],
             -1,
         )

@@ -177,7 +177,7 @@ class Candidates:
     boxes: Tensor  # (B, T, 7) float32
     scores: Tensor  # (B, T) rectified scores
     labels: Tensor  # (B, T) int64
-    is_peak: Tensor  # (B, T) bool; false where top-k ran out of local maxima
+    heat: Tensor  # (B, T) the peak's heatmap score (the threshold's); 0 where top-k ran out of local maxima
 
 
 def peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> Candidates:
@@ -203,7 +203,7 @@ def peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> Candida
     alpha = heat.new_tensor(cfg.iou_rectifier)[labels]  # (B, T)
     iou01 = ((iou + 1.0) * 0.5).clamp(0.0, 1.0)
     scores = heat.pow(1.0 - alpha) * iou01.pow(alpha)  # (B, T)
-    return Candidates(boxes, scores, labels, heat > 0)
+    return Candidates(boxes, scores, labels, heat)
 
 
 @torch.no_grad()
@@ -212,8 +212,9 @@ def decode(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> list[Detections]
 
     Steps: sigmoid heatmap; keep 3x3 local maxima; top cfg.pre_nms_top_k over all classes and cells;
     dims = exp(log_dim), yaw = `decode_yaw`; score = hm^(1 - a_c) * ((iou + 1) / 2)^a_c with
-    a_c = cfg.iou_rectifier[c]; drop scores below cfg.score_threshold; class-specific rotated NMS with
-    cfg.nms_iou; keep the cfg.post_nms_top_k best. Detections are sorted by descending score.
+    a_c = cfg.iou_rectifier[c]; drop peaks whose heatmap score (before the rectification, as CenterPoint
+    and OpenPCDet do) is below cfg.score_threshold; class-specific rotated NMS with cfg.nms_iou on the
+    rectified scores; keep the cfg.post_nms_top_k best. Detections are sorted by descending score.
     """
     return select_detections(peak_candidates(out, cfg, bev), cfg)
 
@@ -222,7 +223,7 @@ def select_detections(cand: Candidates, cfg: HeadConfig) -> list[Detections]:
     """The score threshold and class-specific NMS of `decode`, per batch item, on the candidates' device."""
     result = []
     for i in range(cand.boxes.shape[0]):
-        ok = cand.is_peak[i] & (cand.scores[i] >= cfg.score_threshold)  # (T,)
+        ok = (cand.heat[i] > 0) & (cand.heat[i] >= cfg.score_threshold)  # (T,) peaks, by heatmap score
         boxes, scores, labels = cand.boxes[i][ok], cand.scores[i][ok], cand.labels[i][ok]
         keep = class_nms(boxes, scores, labels, cfg.nms_iou, cfg.pre_nms_top_k, cfg.post_nms_top_k)
         result.append(Detections(boxes[keep], scores[keep], labels[keep]))
