@@ -144,13 +144,23 @@ class SceneChannels:
         self._detections = SceneUpdateChannel(self.detections_topic, context=self.context)
 
     def log(
-        self, detections: Detections, points: np.ndarray, timestamp_ns: int, frame_id: str = DEFAULT_FRAME
+        self,
+        detections: Detections,
+        points: np.ndarray,
+        timestamp_ns: int,
+        frame_id: str = DEFAULT_FRAME,
+        log_time_ns: int | None = None,
     ) -> None:
-        """Log the scene of one prediction, with `timestamp_ns` as the log time too (a recording plays back
-        at sensor time)."""
+        """Log the scene of one prediction; its log time is `log_time_ns` (a live view: now), by default
+        `timestamp_ns` (a recording plays back at sensor time)."""
         cloud, scene = scene_messages(detections, points, timestamp_ns, frame_id)
-        self._points.log(cloud, log_time=timestamp_ns)
-        self._detections.log(scene, log_time=timestamp_ns)
+        at = timestamp_ns if log_time_ns is None else log_time_ns
+        self._points.log(cloud, log_time=at)
+        self._detections.log(scene, log_time=at)
+
+    def watched(self) -> bool:
+        """Whether anything receives these channels (a live view draws nothing for nobody)."""
+        return self._points.has_sinks() or self._detections.has_sinks()
 
     def close(self) -> None:
         self._points.close()

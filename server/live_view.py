@@ -22,18 +22,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from contract import DetectionsReply, SectorMessage
+from phim.scene import SceneChannels
 
 if TYPE_CHECKING:
     import foxglove
-    from foxglove.channels import PointCloudChannel, SceneUpdateChannel
 
 log = logging.getLogger(__name__)
 
-# (reply, points (N, >=4) x y z intensity ..., the sector's timestamp ns, frame) -> (PointCloud, SceneUpdate)
-Render = Callable[[DetectionsReply, np.ndarray, int, str], tuple[Any, Any]]
 Item = tuple[SectorMessage, DetectionsReply]
 
 
@@ -48,8 +44,7 @@ class LiveViewConfig:
 
 @dataclass
 class _Channels:
-    points: PointCloudChannel
-    boxes: SceneUpdateChannel
+    scene: SceneChannels  # its points and boxes, the scene `phim replay --mcap` writes too
     last_seen: float
 
 
@@ -66,10 +61,9 @@ def frame(stream_id: str) -> str:
 class LiveView:
     """`start` binds the port (raises if it cannot), `observe` is the worker's observer, `stop` ends both."""
 
-    def __init__(self, cfg: LiveViewConfig, dropped: Callable[[], None], render: Render | None = None):
+    def __init__(self, cfg: LiveViewConfig, dropped: Callable[[], None]):
         self.cfg = cfg
         self._dropped = dropped  # counts a dropped sector (Metrics.live_view_dropped.inc)
-        self._render = render
         self._queue: queue.Queue[Item | None] = queue.Queue(cfg.queue_size)
         self._stopping = threading.Event()
         self._streams: dict[str, _Channels] = {}
@@ -90,10 +84,6 @@ class LiveView:
             raise RuntimeError(
                 f"live view: {e}; install phim[ros2] (foxglove-sdk), or leave out --foxglove-port"
             ) from e
-        if self._render is None:
-            from phim.scene import scene_messages  # the scene `phim replay --mcap` writes, too
-
-            self._render = scene_messages
         # a context of its own: channels of several servers in one process (tests) never mix
         self._context = foxglove.Context()
         cfg = self.cfg
@@ -150,27 +140,16 @@ class LiveView:
             self._close(stream_id)
 
     def _draw(self, msg: SectorMessage, reply: DetectionsReply) -> None:
-        channels = self._channels(msg.stream_id)
-        if not (channels.points.has_sinks() or channels.boxes.has_sinks()):
-            return  # nobody subscribed: drawing would be wasted
-        assert self._render is not None
-        cloud, scene = self._render(reply, msg.points, msg.timestamp_ns, frame(msg.stream_id))
-        now = time.time_ns()
-        channels.points.log(cloud, log_time=now)
-        channels.boxes.log(scene, log_time=now)
+        scene = self._channels(msg.stream_id).scene
+        if scene.watched():  # nobody subscribed: drawing would be wasted
+            scene.log(reply, msg.points, msg.timestamp_ns, frame(msg.stream_id), log_time_ns=time.time_ns())
 
     def _channels(self, stream_id: str) -> _Channels:
         """A stream's channels, made (advertised) with its first sector."""
-        from foxglove.channels import PointCloudChannel, SceneUpdateChannel
-
         channels = self._streams.get(stream_id)
         if channels is None:
             points, boxes = topics(stream_id)
-            channels = _Channels(
-                PointCloudChannel(points, context=self._context),
-                SceneUpdateChannel(boxes, context=self._context),
-                time.monotonic(),
-            )
+            channels = _Channels(SceneChannels(self._context, points, boxes), time.monotonic())
             self._streams[stream_id] = channels
             log.info("live view: stream %s on %s and %s", stream_id, points, boxes)
         channels.last_seen = time.monotonic()
@@ -182,6 +161,4 @@ class LiveView:
                 self._close(stream_id)
 
     def _close(self, stream_id: str) -> None:
-        channels = self._streams.pop(stream_id)
-        channels.points.close()
-        channels.boxes.close()
+        self._streams.pop(stream_id).scene.close()
