@@ -30,6 +30,7 @@ import numpy as np
 from model.config import CLASS_NAMES
 
 IGNORED = ("DontCare",)
+FOV_SLACK = math.radians(2.0)  # a labelled box centre may lie this far outside the camera image's azimuths
 KITTI_IMAGE_WIDTH = 1242  # px: KITTI's image_2 is 1242 x 375 (1224..1242 by drive; the calib has no width)
 
 VEHICLE, PEDESTRIAN, CYCLIST = CLASS_NAMES
@@ -132,10 +133,15 @@ def read_kitti_labels(label_path: Path, calib_path: Path) -> LabelBoxes:
 
 
 def kitti_label_paths(scan_path: Path) -> tuple[Path, Path]:
-    """…/velodyne/NAME.bin -> (…/label_2/NAME.txt, …/calib/NAME.txt)."""
+    """…/velodyne/NAME.bin -> (…/label_2/NAME.txt, …/calib/NAME.txt); a scan without those, with
+    NAME_label_2.txt and NAME_calib.txt beside it (a single-frame sample) -> those."""
     scan_path = Path(scan_path)
     root, name = scan_path.parent.parent, scan_path.name.split(".")[0]
-    return root / "label_2" / f"{name}.txt", root / "calib" / f"{name}.txt"
+    layout = root / "label_2" / f"{name}.txt", root / "calib" / f"{name}.txt"
+    beside = tuple(scan_path.with_name(f"{name}_{part}.txt") for part in ("label_2", "calib"))
+    if not all(p.is_file() for p in layout) and all(p.is_file() for p in beside):
+        return beside[0], beside[1]
+    return layout
 
 
 def kitti_labels_for(scan_path: Path) -> LabelBoxes | None:
@@ -236,16 +242,20 @@ def map_classes(labels: LabelBoxes, table: dict[str, str]) -> tuple[np.ndarray, 
     return labels.boxes[keep].reshape(-1, 7), np.array(classes, dtype=np.int64)
 
 
-def labeled_targets(path: Path) -> tuple[np.ndarray, np.ndarray, tuple[float, float] | None]:
+def labeled_targets(
+    path: Path, origin: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, tuple[float, float] | None]:
     """The targets of a recorded scan, by its format: boxes (M, 7) float32, labels (M,) int64 index into
     CLASS_NAMES (classes that are not targets dropped) and the azimuth range the labels cover (None: all
-    around). FileNotFoundError when a KITTI or nuScenes scan has no label files beside it."""
+    around). `origin` (3,): where the sensor sits in a file whose frame is not the sensor's (subtracted from
+    the box centres). FileNotFoundError when a KITTI or nuScenes scan has no label files beside it."""
     path = Path(path)
+    shift = np.zeros(3, np.float32) if origin is None else np.asarray(origin, np.float32)
     if path.name.endswith(".pcd.bin"):
         boxes_path = nuscenes_boxes_path(path)
         if not boxes_path.is_file():
             raise FileNotFoundError(f"{path}: no nuScenes boxes file {boxes_path.name} beside it")
-        return (*map_classes(read_nuscenes_boxes(boxes_path), NUSCENES_CLASSES), None)
+        return (*map_classes(_shifted(read_nuscenes_boxes(boxes_path), shift), NUSCENES_CLASSES), None)
     if path.suffix == ".npz":
         native = native_labels_for(path)
         if native is None:
@@ -253,9 +263,30 @@ def labeled_targets(path: Path) -> tuple[np.ndarray, np.ndarray, tuple[float, fl
         unknown = sorted({n for n in native.names if n.lower() not in NATIVE_CLASSES})
         if unknown:
             raise ValueError(f"{path}: gt_names {unknown} are not among the classes {list(CLASS_NAMES)}")
-        return (*map_classes(native, NATIVE_CLASSES), read_native_label_fov(path))
+        return (*map_classes(_shifted(native, shift), NATIVE_CLASSES), read_native_label_fov(path))
     label, calib = kitti_label_paths(path)
     if not (label.is_file() and calib.is_file()):
         raise FileNotFoundError(f"{path}: KITTI labels need {label} and {calib}")
-    fov = kitti_label_fov(read_calib(calib))
-    return (*map_classes(read_kitti_labels(label, calib), KITTI_CLASSES), fov)
+    labels = _shifted(read_kitti_labels(label, calib), shift)
+    fov = labelled_fov(kitti_label_fov(read_calib(calib)), labels.boxes)
+    return (*map_classes(labels, KITTI_CLASSES), fov)
+
+
+def _shifted(labels: LabelBoxes, shift: np.ndarray) -> LabelBoxes:
+    boxes = labels.boxes.copy()
+    boxes[:, :3] -= shift
+    return LabelBoxes(boxes, labels.names)
+
+
+def labelled_fov(camera: tuple[float, float], boxes: np.ndarray) -> tuple[float, float]:
+    """The azimuth range a KITTI-layout scan's labels cover: the camera image's (`kitti_label_fov`), unless
+    a labelled box centre lies more than FOV_SLACK outside it: then the calib does not describe the camera
+    that was labelled (the Argoverse conversion: image -41.7..+17.8 deg by KITTI's image width, labels
+    -35..+53 deg) and the labels' own azimuth span is used."""
+    if len(boxes) == 0:
+        return camera
+    azimuth = np.arctan2(boxes[:, 1].astype(np.float64), boxes[:, 0])  # (M,)
+    lo, hi = float(azimuth.min()), float(azimuth.max())
+    if lo >= camera[0] - FOV_SLACK and hi <= camera[1] + FOV_SLACK:
+        return camera
+    return lo - FOV_SLACK, hi + FOV_SLACK

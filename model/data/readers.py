@@ -176,16 +176,21 @@ def feature_columns(scan: LabeledScan, point_features: int) -> np.ndarray:
     return np.stack(cols, axis=1).astype(np.float32)
 
 
-def read_labeled(path: Path, sectors: int = DEFAULT_SECTORS) -> LabeledScan:
+def read_labeled(path: Path, sectors: int = DEFAULT_SECTORS, origin: np.ndarray | None = None) -> LabeledScan:
     """A recorded scan with its ground truth: KITTI velodyne .bin (+ ../label_2, ../calib), nuScenes
     .pcd.bin (+ NAME_boxes.txt beside it) or native .npz (ground truth optional: empty without it).
 
-    Points come with x, y, z, intensity first; `sector` is each point's sector of `sectors`.
+    Points come with x, y, z, intensity first; `sector` is each point's sector of `sectors`. `origin` (3,):
+    the sensor's position in the file's frame, when that is not the sensor's (points and boxes are moved
+    into the sensor's frame).
     """
     path = Path(path)
     scan = read_scan(path)
     points, fields = model_columns(scan.points, scan.fields)  # (N, C)
-    boxes, labels, label_fov = labeled_targets(path)
+    if origin is not None:
+        points = points.copy()
+        points[:, :3] -= np.asarray(origin, np.float32)
+    boxes, labels, label_fov = labeled_targets(path, origin)
     gt = GroundTruth.from_boxes(boxes, labels, points)
     sector = sector_of_xy(points[:, 0], points[:, 1], sectors)  # (N,)
     return LabeledScan(scan.name, points, fields, gt, scan.time, sector, label_fov)

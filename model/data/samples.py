@@ -12,3 +12,9 @@ SAMPLES_DIR = Path(
 )
 KITTI_VELODYNE = SAMPLES_DIR / "kitti_object" / "velodyne"  # KITTI object scans 000000.bin ...
 KITTI_000000 = KITTI_VELODYNE / "000000.bin"
+
+# Samples whose points and labels are not in the sensor's frame: subfolder -> the sensor's position (x, y, z)
+# in their frame, metres. The Argoverse-1 conversion is in Argoverse's egovehicle frame (origin at the rear
+# axle, ~0.33 m above the road); its two VLP-32s sit at (1.35, 0, 1.64) and (1.355, 0, 1.565) there
+# (Argoverse-1 vehicle calibration): the sensor is taken as their middle.
+SENSOR_ORIGINS: dict[str, tuple[float, float, float]] = {"argoverse_kitti_format": (1.35, 0.0, 1.60)}

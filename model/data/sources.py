@@ -2,8 +2,9 @@
 
 - `sim`: scan i of stream `seed` is `simulate(sim_seed(seed, i))`, an endless, reproducible stream. Training
   uses stream 0 by default and evaluation stream 7, so held-out scans are never trained on.
-- recorded data (`kitti:DIR`, `nuscenes:DIR`, `native:DIR`): the folder's scans, cycled; training visits
-  them in a fresh random order every pass (seeded), evaluation in file order.
+- recorded data (`kitti:DIR`, `nuscenes:DIR`, `native:DIR`, `samples[:DIR]`): the folder's scans, cycled;
+  training visits them in a fresh random order every pass (seeded), evaluation in file order. Samples are
+  named SUBFOLDER/NAME (KITTI and the Argoverse conversion both have a 000000).
 `iter_labeled(spec)` yields a data set's scans in order.
 Sources are plain picklable objects, so data-loader worker processes can build scans themselves.
 """
@@ -18,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from model.data.datasets import DataKind, DataSpec, list_scan_paths, parse_data_spec
-from model.data.readers import DEFAULT_SECTORS, read_labeled
+from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
+from model.data.readers import read_labeled
+from model.data.samples import SENSOR_ORIGINS
 from model.data.sim import SimConfig, simulate
 from model.data.types import LabeledScan
 
@@ -46,13 +48,19 @@ class SimSource:
 class FileSource:
     paths: tuple[Path, ...]
     shuffle_seed: int | None = None  # None: file order
+    root: Path | None = None  # samples: scans named SUBFOLDER/NAME, in the sensor frame (SENSOR_ORIGINS)
 
     def __call__(self, index: int) -> LabeledScan:
         n = len(self.paths)
         epoch, k = divmod(index, n)
         if self.shuffle_seed is not None:
             k = int(np.random.default_rng([self.shuffle_seed, epoch]).permutation(n)[k])
-        return read_labeled(self.paths[k])
+        if self.root is None:
+            return read_labeled(self.paths[k])
+        folder = self.paths[k].relative_to(self.root).parts[0]
+        origin = SENSOR_ORIGINS.get(folder)
+        scan = read_labeled(self.paths[k], origin=None if origin is None else np.array(origin))
+        return dataclasses.replace(scan, name=f"{folder}/{scan.name}")
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -66,16 +74,13 @@ def scan_source(spec: str, seed: int, shuffle: bool = True) -> SimSource | FileS
     paths = tuple(list_scan_paths(parsed))
     if not paths:
         raise ValueError(f"data {spec!r}: no scans found")
-    return FileSource(paths, seed if shuffle else None)
+    root = parsed.path if parsed.kind is DataKind.SAMPLES else None
+    return FileSource(paths, seed if shuffle else None, root)
 
 
-def iter_labeled(
-    spec: str | DataSpec, sectors: int = DEFAULT_SECTORS, seed: int = 0
-) -> Iterator[LabeledScan]:
-    """The labelled scans of a data set, in order (the simulator: endless, scans of stream `seed`)."""
-    parsed = parse_data_spec(spec) if isinstance(spec, str) else spec
-    if parsed.kind is DataKind.SIM:
-        source = SimSource(seed)
-        return (source(i) for i in itertools.count())
-    files = list_scan_paths(parsed)  # checked now, before the first scan is asked for
-    return (read_labeled(path, sectors) for path in files)
+def iter_labeled(spec: str, seed: int = 0) -> Iterator[LabeledScan]:
+    """The labelled scans of a data set, in order (the simulator: endless, scans of stream `seed`); a
+    folder is checked now, before the first scan is asked for."""
+    source = scan_source(spec, seed, shuffle=False)
+    indices = itertools.count() if isinstance(source, SimSource) else range(len(source))
+    return (source(i) for i in indices)

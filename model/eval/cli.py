@@ -45,6 +45,13 @@ def scans_option(default: int, what: str):
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
     help="Score a predictions .npz (from --predictions) instead of running a model.",
 )
+@click.option(
+    "--max-range",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=75.0,
+    show_default=True,
+    help="Score only boxes (predicted and labelled) centred within this many metres: every config the same.",
+)
 @device_option()
 @precision_option
 def eval_cmd(
@@ -56,17 +63,20 @@ def eval_cmd(
     predictions: Path | None,
     pictures: Path | None,
     rescore: Path | None,
+    max_range: float,
     device: str,
     precision: Precision,
 ) -> None:
-    """Waymo-style AP/APH per class and level, per buffer fill (the full turn and each buffered count)."""
+    """Waymo-style AP/APH per class and level, per buffer fill (the full turn and each buffered count), the
+    vehicle AP at IoU 0.5 too, and the vehicle check (recall of well-seen vehicles, false boxes per scan)."""
     from model.checkpoint import resolve_checkpoint
     from model.data.sources import scan_source
     from model.data.types import LabeledScan
     from model.device import pick_device
     from model.eval.metrics import count_ground_truths, format_table
     from model.eval.prediction_files import read_predictions_by_fill, write_predictions
-    from model.eval.runner import ScanResult, run_eval, run_rescore, score
+    from model.eval.runner import ScanResult, run_eval, run_rescore, score, vehicle_ap, within_range
+    from model.eval.vehicle_check import format_check, vehicle_check
 
     source = scan_source(data, seed, shuffle=False)
     count = min(scans, len(source))
@@ -85,14 +95,19 @@ def eval_cmd(
         model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
         what = f"checkpoint {ckpt_path}, precision {precision.value}"
         results = run_eval(model, range(count), source, on_scan, precision)
-    metrics = score(results)
     if predictions is not None:
         write_predictions(predictions, results)
+    results = [within_range(r, max_range) for r in results]
+    metrics = score(results) | {"max_range": max_range, "vehicle_ap_by_iou": vehicle_ap(results)}
+    metrics["vehicle_check"] = vehicle_check(results)
     if as_json:
         click.echo(json.dumps(metrics, indent=2))
         return
     click.echo(f"{what}, data {data}, {count} scans in {time.perf_counter() - t0:.1f} s")
     click.echo(format_table(metrics, count_ground_truths([r.truths[-1] for r in results])))
+    ap = metrics["vehicle_ap_by_iou"]
+    click.echo(f"LEVEL_1 VEHICLE AP at 3D IoU 0.7: {ap['0.7']:.4f}, at 0.5: {ap['0.5']:.4f}")
+    click.echo(format_check(metrics["vehicle_check"]))
     click.echo(
         "LEVEL_1 mean AP / APH by buffered sectors: on the sectors seen | on the whole turn (Figure 8)"
     )

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from model.config import Precision
+from model.config import CLASS_NAMES, Precision
 from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import GroundTruth, LabeledScan, Predictions
 from model.detector import PHiM
@@ -83,6 +83,19 @@ def rescore_scan(scan: LabeledScan, by_fill: list[Predictions]) -> ScanResult:
     return ScanResult(scan.name, preds, truths_by_fill(scan, n))
 
 
+def _near(boxes: np.ndarray, max_range: float) -> np.ndarray:
+    return np.hypot(boxes[:, 0], boxes[:, 1]) <= max_range  # (K,) box centres within max_range (BEV)
+
+
+def within_range(r: ScanResult, max_range: float | None) -> ScanResult:
+    """The result with only the predictions and ground truths whose box centre lies within `max_range`
+    metres of the sensor (BEV): every model is scored on the same region, whatever its own range."""
+    if max_range is None:
+        return r
+    preds = [_select(p, _near(p.boxes, max_range)) for p in r.predictions]
+    return ScanResult(r.name, preds, [t.select(_near(t.boxes, max_range)) for t in r.truths])
+
+
 def score(results: Sequence[ScanResult], cfg: MetricsConfig | None = None) -> dict:
     """-> the stable JSON shape: full-turn LEVEL_1 / LEVEL_2, and the same per buffered-sector count, scored
     on the sectors seen (`by_buffered_sectors`) and on the whole turn (`by_buffered_sectors_global`)."""
@@ -100,6 +113,16 @@ def score(results: Sequence[ScanResult], cfg: MetricsConfig | None = None) -> di
         "by_buffered_sectors": seen,
         "by_buffered_sectors_global": scene,
     }
+
+
+def vehicle_ap(results: Sequence[ScanResult]) -> dict[str, float]:
+    """LEVEL_1 vehicle AP of the full-turn predictions at 3D IoU 0.7 (Waymo's) and 0.5."""
+    preds, truths = [r.predictions[-1] for r in results], [r.truths[-1] for r in results]
+    out = {}
+    for iou in (0.7, 0.5):
+        cfg = MetricsConfig(iou_thresholds=(iou, *MetricsConfig().iou_thresholds[1:]))
+        out[str(iou)] = evaluate(preds, truths, cfg)["LEVEL_1"][CLASS_NAMES[0]]["AP"]
+    return out
 
 
 def run_eval(

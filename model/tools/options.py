@@ -70,7 +70,7 @@ data_option = click.option(
     show_default=True,
     show_envvar=True,
     callback=_check_data_spec,
-    help="Data: sim, kitti:DIR, nuscenes:DIR or native:DIR.",
+    help="Data: sim, kitti:DIR, nuscenes:DIR, native:DIR or samples[:DIR] (the real samples; eval only).",
 )
 threads_option = click.option(
     "--threads",

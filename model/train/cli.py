@@ -85,19 +85,22 @@ def train_cmd(
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if threads:
         torch.set_num_threads(threads)
-    cfg = TrainConfig(
-        config=config,
-        data=data,
-        steps=steps,
-        batch_size=batch_size,
-        lr=lr,
-        weight_decay=weight_decay,
-        seed=seed,
-        workers=workers,
-        checkpoint_every=checkpoint_every,
-        log_every=log_every,
-        init=str(checkpoint_path(init)) if init else "",
-        loss=LossConfig(direction_weight=direction_weight),
-    )
+    try:
+        cfg = TrainConfig(
+            config=config,
+            data=data,
+            steps=steps,
+            batch_size=batch_size,
+            lr=lr,
+            weight_decay=weight_decay,
+            seed=seed,
+            workers=workers,
+            checkpoint_every=checkpoint_every,
+            log_every=log_every,
+            init=str(checkpoint_path(init)) if init else "",
+            loss=LossConfig(direction_weight=direction_weight),
+        )
+    except ValueError as e:
+        raise click.BadParameter(str(e), param_hint="--data") from None
     path = train(cfg, out, resume=resume, device=device, progress=progress, max_minutes=max_minutes)
     click.echo(f"model: {path}")

@@ -27,6 +27,7 @@ from torch import nn
 
 from model.checkpoint import load_checkpoint, save_checkpoint
 from model.config import get_config
+from model.data.datasets import DataKind, parse_data_spec
 from model.data.sources import scan_source
 from model.detector import PHiM
 from model.train.data import SampleConfig, SampleStream, TrainSample
@@ -59,6 +60,13 @@ class TrainConfig:
     log_every: int = 10
     sample: SampleConfig = field(default_factory=SampleConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+
+    def __post_init__(self) -> None:
+        if parse_data_spec(self.data).kind is DataKind.SAMPLES:
+            raise ValueError(
+                f"data {self.data!r}: the real samples' licences allow evaluation only; train on sim or on "
+                "data you may train on (kitti:DIR, nuscenes:DIR, native:DIR)"
+            )
 
 
 def _plain(cfg: TrainConfig) -> dict[str, Any]:

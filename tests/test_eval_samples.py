@@ -1,0 +1,128 @@
+"""Evaluation on the real samples: the `samples` data spec (every labelled real scan, each in its sensor's
+frame), the evaluation range, and the vehicle check (recall of well-seen vehicles, false boxes per scan)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from model.config import CLASS_NAMES
+from model.data.datasets import DataKind, parse_data_spec
+from model.data.sources import iter_labeled
+from model.data.types import LEVEL_1, GroundTruth, Predictions
+from model.eval.runner import ScanResult, within_range
+from model.eval.vehicle_check import VehicleCheckConfig, vehicle_check
+from model.train.loop import TrainConfig
+
+VEHICLE, PEDESTRIAN = CLASS_NAMES.index("VEHICLE"), CLASS_NAMES.index("PEDESTRIAN")
+CAR = (4.5, 1.9, 1.6)
+
+
+def box(x: float, y: float, label: int = VEHICLE, yaw: float = 0.0) -> np.ndarray:
+    dims = CAR if label == VEHICLE else (0.8, 0.7, 1.8)
+    return np.array([x, y, -0.9, *dims, yaw], np.float32)
+
+
+def truth(boxes: list[np.ndarray], labels: list[int], points: list[int]) -> GroundTruth:
+    return GroundTruth(
+        np.stack(boxes), np.array(labels, np.int64), np.array(points, np.int64), np.full(len(boxes), LEVEL_1)
+    )
+
+
+def result(name: str, gt: GroundTruth, pred_boxes: list[np.ndarray], scores: list[float]) -> ScanResult:
+    boxes = np.stack(pred_boxes) if pred_boxes else np.zeros((0, 7), np.float32)
+    pred = Predictions(boxes, np.array(scores, np.float32), np.full(len(scores), VEHICLE, np.int64))
+    return ScanResult(name, [pred], [gt])
+
+
+def test_vehicle_check_counts_found_vehicles_and_boxes_on_nothing() -> None:
+    gt = truth(
+        [box(10, 0), box(20, 5), box(30, -5), box(60, 0), box(15, 8, PEDESTRIAN)],
+        [VEHICLE, VEHICLE, VEHICLE, VEHICLE, PEDESTRIAN],
+        [200, 120, 30, 300, 80],  # the third has too few points, the fourth is beyond 50 m: not counted
+    )
+    preds = [
+        box(10.2, 0.1),  # found
+        box(20, 5, yaw=math.pi / 2),  # on the second vehicle but turned 90 degrees: IoU < 0.5, not false
+        box(40, 20),  # on nothing: false
+        box(15, 8),  # a vehicle box on the pedestrian: overlaps a labelled object, not false
+        box(-20, 3),  # on nothing but below the score: ignored
+    ]
+    check = vehicle_check([result("a/1", gt, preds, [0.9, 0.8, 0.7, 0.6, 0.3])])
+    assert check["all"] == {
+        "scans": 1,
+        "vehicles": 2,
+        "found": 1,
+        "recall": 0.5,
+        "false_boxes": 1,
+        "false_per_scan": 1.0,
+    }
+    scores = [0.9, 0.8, 0.7, 0.6, 0.3]
+    lower = vehicle_check([result("a/1", gt, preds, scores)], VehicleCheckConfig(score=0.2))
+    assert lower["all"]["false_boxes"] == 2
+
+
+def test_vehicle_check_groups_scans_by_subfolder() -> None:
+    gt = truth([box(10, 0)], [VEHICLE], [100])
+    results = [result("kitti/0", gt, [box(10, 0)], [0.9]), result("argo/0", gt, [], [])]
+    results.append(result("argo/1", gt, [], []))
+    check = vehicle_check(results)
+    assert check["all"]["recall"] == pytest.approx(1 / 3)
+    assert check["by_group"]["kitti"]["recall"] == 1.0 and check["by_group"]["argo"]["found"] == 0
+
+
+def test_the_evaluation_range_crops_predictions_and_labels_alike() -> None:
+    gt = truth([box(10, 0), box(60, 0)], [VEHICLE, VEHICLE], [100, 100])
+    r = within_range(result("x", gt, [box(10, 0), box(0, 55)], [0.9, 0.9]), 50.0)
+    assert len(r.truths[0]) == 1 and len(r.predictions[0]) == 1
+    assert within_range(r, None) is r
+
+
+def test_training_refuses_the_real_samples() -> None:
+    with pytest.raises(ValueError, match="evaluation only"):
+        TrainConfig(data="samples")
+
+
+@pytest.mark.samples
+def test_samples_spec_reads_every_labelled_real_scan_in_its_sensor_frame() -> None:
+    assert parse_data_spec("samples").kind is DataKind.SAMPLES
+    scans = {s.name: s for s in iter_labeled("samples")}
+    groups = {name.split("/")[0] for name in scans}
+    assert groups == {
+        "argoverse_kitti_format",
+        "kitti_object",
+        "kitti_object_000008_reduced",
+        "nuscenes_sample",
+    }
+    assert len(scans) == 11
+    for name, scan in scans.items():
+        r = np.hypot(scan.points[:, 0], scan.points[:, 1])
+        ground = np.percentile(scan.points[(r > 10) & (r < 20), 2], 5)
+        assert -2.4 < ground < -1.5, (name, ground)  # the road ~1.7-2 m below the sensor, every data set
+        assert len(scan.gt) > 0 and (scan.gt.num_points > 0).any(), name
+    argo = scans["argoverse_kitti_format/000000"].label_fov
+    kitti = scans["kitti_object/000000"].label_fov
+    assert argo is not None and math.degrees(argo[1]) > 50  # the labels' span: the calib's camera is not it
+    assert kitti is not None and math.degrees(kitti[1]) == pytest.approx(40.4, abs=0.2)  # the camera's image
+
+
+@pytest.mark.samples
+def test_phim_eval_on_the_samples_reports_the_vehicle_check() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "phim", "eval", "--data", "samples", "--json"],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=300,
+    )
+    metrics = json.loads(out.stdout)
+    check = metrics["vehicle_check"]
+    assert check["all"]["scans"] == 11 and check["all"]["vehicles"] >= 40
+    assert set(check["by_group"]) >= {"kitti_object", "nuscenes_sample"}
+    assert metrics["max_range"] == 75.0 and set(metrics["vehicle_ap_by_iou"]) == {"0.7", "0.5"}
+    assert metrics["vehicle_ap_by_iou"]["0.5"] >= metrics["vehicle_ap_by_iou"]["0.7"]
