@@ -42,6 +42,13 @@ class Precision(enum.StrEnum):
     BF16 = "bf16"
 
 
+class MambaHistory(enum.StrEnum):
+    """How far back a stream's global-Mamba state reaches (docs/model.md, "Streaming history")."""
+
+    TURN = "turn"  # reset every sectors_per_turn sectors: each turn is encoded as training encodes a scan
+    STREAM = "stream"  # carried from the stream's start (or a client's reset): far longer than training's
+
+
 class HeadingCode(enum.StrEnum):
     """How the head encodes a box's yaw."""
 
@@ -174,6 +181,7 @@ class PHiMConfig:
     head: HeadConfig
     sectors_per_turn: int = 4
     buffer_sectors: int = 3  # sectors kept per stream besides the new one (n - 1)
+    history: MambaHistory = MambaHistory.TURN  # training runs one turn from a zero state: so does serving
 
     def __post_init__(self) -> None:
         per_sector, rem = divmod(self.grid.theta_bins, self.sectors_per_turn)
@@ -183,6 +191,12 @@ class PHiMConfig:
             raise ValueError("theta bins per sector must be a multiple of frustum_theta_bins")
         if self.buffer_sectors < 0:
             raise ValueError("buffer_sectors must be >= 0")
+
+    def resets_history(self, sectors_seen: int) -> bool:
+        """Whether a stream that has seen `sectors_seen` sectors starts its next one from a zero global-Mamba
+        state (a turn boundary, under MambaHistory.TURN)."""
+        turn_done = sectors_seen > 0 and sectors_seen % self.sectors_per_turn == 0
+        return self.history is MambaHistory.TURN and turn_done
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -202,6 +216,7 @@ class PHiMConfig:
             ),
             sectors_per_turn=d["sectors_per_turn"],
             buffer_sectors=d["buffer_sectors"],
+            history=MambaHistory(d.get("history", MambaHistory.TURN)),
         )
 
 

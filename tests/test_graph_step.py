@@ -3,6 +3,7 @@ detections, states and buffers, alone and batched in any order, at any capacity 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import pytest
@@ -10,7 +11,7 @@ import torch
 from conftest import kitti_scan
 from test_streaming import assert_same_detections, make_model
 
-from model.config import paper
+from model.config import MambaHistory, paper
 from model.data.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.graph.buckets import CapacityPlanner, row_bucket
@@ -61,7 +62,11 @@ def run_both(graph: GraphStreamingDetector, eager: StreamingDetector, batches: l
 
 
 @pytest.mark.samples
-def test_equals_eager_over_three_turns(model: PHiM):
+@pytest.mark.parametrize("history", list(MambaHistory))
+def test_equals_eager_over_three_turns(model: PHiM, history: MambaHistory):
+    """Across turn boundaries too: both reset the global Mamba there (TURN) or both carry it (STREAM)."""
+    model = copy.copy(model)
+    model.cfg = dataclasses.replace(model.cfg, history=history)
     sectors = split_turn(kitti_scan(0), model.cfg.sectors_per_turn)
     graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
     run_both(graph, eager, [[s] for s in sectors * 3])

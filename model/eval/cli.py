@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
 
 import click
 
-from model.config import Precision
+from model.config import MambaHistory, Precision
 from model.tools.options import (
     checkpoint_option,
     data_option,
@@ -52,6 +53,18 @@ def scans_option(default: int, what: str):
     show_default=True,
     help="Score only boxes (predicted and labelled) centred within this many metres: every config the same.",
 )
+@click.option(
+    "--turns",
+    type=click.IntRange(1),
+    default=1,
+    show_default=True,
+    help="Also stream each scan this many times as one stream and score every turn (the history policy).",
+)
+@click.option(
+    "--history",
+    type=click.Choice([h.value for h in MambaHistory]),
+    help="Override the checkpoint's streaming-history policy (MambaHistory) for the streamed --turns.",
+)
 @device_option()
 @precision_option
 def eval_cmd(
@@ -64,6 +77,8 @@ def eval_cmd(
     pictures: Path | None,
     rescore: Path | None,
     max_range: float,
+    turns: int,
+    history: str | None,
     device: str,
     precision: Precision,
 ) -> None:
@@ -88,6 +103,7 @@ def eval_cmd(
 
             draw_result(pictures / f"{r.name}.png", scan, r)
 
+    by_turn: dict = {}
     if rescore is not None:
         what = f"predictions {rescore}"
         results = run_rescore(read_predictions_by_fill(rescore), range(count), source, on_scan)
@@ -95,11 +111,20 @@ def eval_cmd(
         model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
         what = f"checkpoint {ckpt_path}, precision {precision.value}"
         results = run_eval(model, range(count), source, on_scan, precision)
+        if history is not None:
+            model.cfg = dataclasses.replace(model.cfg, history=MambaHistory(history))
+        if turns > 1:
+            from model.eval.turns import run_turns, score_turns
+
+            streamed = run_turns(model, range(count), source, turns, precision)
+            by_turn = score_turns([[within_range(r, max_range) for r in rs] for rs in streamed])
     if predictions is not None:
         write_predictions(predictions, results)
     results = [within_range(r, max_range) for r in results]
     metrics = score(results) | {"max_range": max_range, "vehicle_ap_by_iou": vehicle_ap(results)}
     metrics["vehicle_check"] = vehicle_check(results)
+    if by_turn:
+        metrics["by_turn"] = by_turn
     if as_json:
         click.echo(json.dumps(metrics, indent=2))
         return
@@ -108,6 +133,12 @@ def eval_cmd(
     ap = metrics["vehicle_ap_by_iou"]
     click.echo(f"LEVEL_1 VEHICLE AP at 3D IoU 0.7: {ap['0.7']:.4f}, at 0.5: {ap['0.5']:.4f}")
     click.echo(format_check(metrics["vehicle_check"]))
+    for t, m in metrics.get("by_turn", {}).items():
+        level = m["LEVEL_1"]
+        click.echo(
+            f"turn {t} of one stream: LEVEL_1 VEHICLE AP {level['VEHICLE']['AP']:.4f}, "
+            f"mean AP / APH {level['mean']['AP']:.4f} / {level['mean']['APH']:.4f}"
+        )
     click.echo(
         "LEVEL_1 mean AP / APH by buffered sectors: on the sectors seen | on the whole turn (Figure 8)"
     )

@@ -239,6 +239,11 @@ class GraphStreamingDetector:
         counts = torch.tensor([int(p.shape[0]) for p in points] + [0] * (b - len(points)))  # (B,)
         dev = self.device
         st = self.slots.gather(self.slots.read_rows(states, b))
+        turn = [i for i, s in enumerate(states) if self.cfg.resets_history(s.sectors_seen)]
+        if turn:  # a turn boundary: these streams' global Mamba starts from zero (the buffer stays)
+            rows = torch.tensor(turn).to(self.device, non_blocking=True)
+            for t in (*st.conv, *st.ssm):
+                t.index_fill_(0, rows, 0.0)
         return [
             padded.to(dev, non_blocking=True),
             counts.to(dev, non_blocking=True),
