@@ -224,12 +224,23 @@ def _tuples(d: dict) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
 
+# Waymo's TOP LiDAR sits this high in the vehicle frame (its extrinsic z; the frame's origin is about at the
+# road): the paper's z slab [-2, 4] m is in the vehicle frame, our grid in the sensor's
+WAYMO_TOP_HEIGHT = 2.184
+
+
 def paper() -> PHiMConfig:
-    """The paper's Waymo settings (Sec. 4 and appendix B)."""
+    """The paper's Waymo settings (Sec. 4 and appendix B); the z slab moved into the sensor frame."""
     return PHiMConfig(
         name="paper",
         grid=PolarGridConfig(
-            r_bins=468, theta_bins=468, z_bins=32, r_min=0.0, r_max=74.88, z_min=-2.0, z_max=4.0
+            r_bins=468,
+            theta_bins=468,
+            z_bins=32,
+            r_min=0.0,
+            r_max=74.88,
+            z_min=-2.0 - WAYMO_TOP_HEIGHT,
+            z_max=4.0 - WAYMO_TOP_HEIGHT,
         ),
         vfe=VFEConfig(point_features=5, hidden=(128,)),
         backbone=BackboneConfig(d_model=128, frustum_theta_bins=9),

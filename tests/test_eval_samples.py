@@ -11,10 +11,10 @@ import sys
 import numpy as np
 import pytest
 
-from model.config import CLASS_NAMES
+from model.config import CLASS_NAMES, paper, tiny
 from model.data.datasets import DataKind, parse_data_spec
 from model.data.sources import iter_labeled
-from model.data.types import LEVEL_1, GroundTruth, Predictions
+from model.data.types import LEVEL_1, GroundTruth, Predictions, points_in_boxes
 from model.eval.runner import ScanResult, within_range
 from model.eval.vehicle_check import VehicleCheckConfig, vehicle_check
 from model.train.loop import TrainConfig
@@ -126,3 +126,22 @@ def test_phim_eval_on_the_samples_reports_the_vehicle_check() -> None:
     assert set(check["by_group"]) >= {"kitti_object", "nuscenes_sample"}
     assert metrics["max_range"] == 75.0 and set(metrics["vehicle_ap_by_iou"]) == {"0.7", "0.5"}
     assert metrics["vehicle_ap_by_iou"]["0.5"] >= metrics["vehicle_ap_by_iou"]["0.7"]
+
+
+@pytest.mark.samples
+@pytest.mark.parametrize("config", [paper, tiny])
+def test_the_grids_z_slab_holds_the_road_and_the_labelled_objects_of_every_sample(config) -> None:
+    """The paper's slab is [-2, 4] m in Waymo's vehicle frame (road at 0): in the sensor frame of every
+    sample the road must lie inside it with room below (the slab taken as sensor-frame metres, before
+    2026-11-25, cut nuScenes' road at -2.25 m), and the labelled objects' points must be kept (the paper
+    slab's top, 1.8 m above the sensor, cuts the top of a nuScenes bus: 4 m at a 1.84 m sensor)."""
+    grid = config().grid
+    inside, total = 0, 0
+    for scan in iter_labeled("samples"):
+        r = np.hypot(scan.points[:, 0], scan.points[:, 1])
+        road = np.percentile(scan.points[(r > 10) & (r < 20), 2], 5)
+        assert road - grid.z_min > 0.5, (scan.name, road)
+        z = scan.points[points_in_boxes(scan.points[:, :3], scan.gt.boxes).any(axis=1), 2]
+        inside += int(((z >= grid.z_min) & (z < grid.z_max)).sum())
+        total += len(z)
+    assert inside / total > (0.995 if config is paper else 0.9999), inside / total
