@@ -3,6 +3,7 @@ frame), the evaluation range, and the vehicle check (recall of well-seen vehicle
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -13,9 +14,10 @@ import pytest
 
 from model.config import CLASS_NAMES, paper, tiny
 from model.data.datasets import DataKind, parse_data_spec
+from model.data.readers import sector_of_xy
 from model.data.sources import iter_labeled
-from model.data.types import LEVEL_1, GroundTruth, Predictions, points_in_boxes
-from model.eval.runner import ScanResult, within_range
+from model.data.types import LEVEL_1, GroundTruth, LabeledScan, Predictions, Spin, points_in_boxes
+from model.eval.runner import ScanResult, scan_sectors, truths_by_fill, within_range
 from model.eval.vehicle_check import VehicleCheckConfig, vehicle_check
 from model.train.loop import TrainConfig
 
@@ -105,6 +107,7 @@ def test_samples_spec_reads_every_labelled_real_scan_in_its_sensor_frame() -> No
         ground = np.percentile(scan.points[(r > 10) & (r < 20), 2], 5)
         assert -2.4 < ground < -1.5, (name, ground)  # the road ~1.7-2 m below the sensor, every data set
         assert len(scan.gt) > 0 and (scan.gt.num_points > 0).any(), name
+        assert scan.spin is (Spin.CW if name.startswith("nuscenes") else Spin.CCW), name
     argo = scans["argoverse_kitti_format/000000"].label_fov
     kitti = scans["kitti_object/000000"].label_fov
     assert argo is not None and math.degrees(argo[1]) > 50  # the labels' span: the calib's camera is not it
@@ -145,3 +148,18 @@ def test_the_grids_z_slab_holds_the_road_and_the_labelled_objects_of_every_sampl
         inside += int(((z >= grid.z_min) & (z < grid.z_max)).sum())
         total += len(z)
     assert inside / total > (0.995 if config is paper else 0.9999), inside / total
+
+
+def test_a_clockwise_scan_is_streamed_and_scored_in_its_sweep_order() -> None:
+    """Sector 0 first, then 3, 2, 1 for a sensor spinning clockwise (nuScenes): the partial predictions are
+    scored on the sectors the sweep has passed."""
+    boxes = [box(-7, -7), box(7, -7), box(7, 7), box(-7, 7)]  # one box per sector 0, 1, 2, 3 (from -pi)
+    scan = LabeledScan("cw", np.zeros((0, 4), np.float32), ("x", "y", "z", "intensity"),
+                       truth(boxes, [VEHICLE] * 4, [100] * 4), spin=Spin.CW)  # fmt: skip
+    seen = [{(round(x), round(y)) for x, y in t.boxes[:, :2].tolist()} for t in truths_by_fill(scan, 4)]
+    assert seen[0] == {(-7, -7)} and seen[1] == {(-7, -7), (-7, 7)} and len(seen[3]) == 4
+    a = np.linspace(-np.pi, np.pi, 400, endpoint=False)
+    points = np.stack([np.cos(a) * 10, np.sin(a) * 10, a * 0, a * 0], 1).astype(np.float32)
+    streamed = scan_sectors(dataclasses.replace(scan, points=points), 4, 4)
+    firsts = [int(sector_of_xy(s[:1, 0].numpy(), s[:1, 1].numpy(), 4)[0]) for s in streamed]
+    assert firsts == Spin.CW.order(4) == [0, 3, 2, 1]

@@ -127,13 +127,14 @@ def test_augment_keeps_points_inside_their_boxes():
         assert np.all(np.abs(b[:, 6]) <= math.pi)
 
 
-def test_sample_sectors_in_time_order_and_targets_grow_with_the_buffer():
+@pytest.mark.parametrize(("clockwise", "step"), [(0.0, 1), (1.0, -1)])
+def test_sample_sectors_in_time_order_and_targets_grow_with_the_buffer(clockwise: float, step: int):
     scan = _scan()
-    cfg = SampleConfig(augment=AugmentConfig(rotate=False, flip=False, scale=(1.0, 1.0)))
+    cfg = SampleConfig(augment=AugmentConfig(rotate=False, flip=False, scale=(1.0, 1.0)), clockwise=clockwise)
     s = make_sample(scan, CFG, cfg, np.random.default_rng(3))
     assert sum(len(x) for x in s.sectors) == len(scan.points)
     ks = [int(sector_of_xy(x[:, 0].numpy(), x[:, 1].numpy(), 4)[0]) for x in s.sectors]
-    assert sorted(ks) == [0, 1, 2, 3] and all((b - a) % 4 == 1 for a, b in itertools.pairwise(ks))
+    assert sorted(ks) == [0, 1, 2, 3] and all((b - a) % 4 == step % 4 for a, b in itertools.pairwise(ks))
     counts = [len(t.index) for t in s.targets]
     assert counts == sorted(counts) and counts[-1] == 4
     box_sector = sector_of_xy(BOXES[:, 0], BOXES[:, 1], 4)
@@ -166,3 +167,14 @@ def test_a_box_without_points_is_not_a_target(bad):
     )
     s = make_sample(empty, CFG, SampleConfig(), np.random.default_rng(0))
     assert len(s.targets[-1].index) == 3
+
+
+def test_samples_spin_both_ways():
+    """Sensors spin either way round: about half the samples run clockwise by default."""
+    scan, cfg = _scan(), SampleConfig()
+    steps = []
+    for seed in range(40):
+        s = make_sample(scan, CFG, cfg, np.random.default_rng(seed))
+        k = [int(sector_of_xy(x[:2, 0].numpy(), x[:2, 1].numpy(), 4)[0]) for x in s.sectors[:2]]
+        steps.append((k[1] - k[0]) % 4)
+    assert set(steps) == {1, 3} and 10 < steps.count(3) < 30

@@ -14,7 +14,6 @@ A drive is a folder of such files, replayed in name order. Label files and class
 
 from __future__ import annotations
 
-import enum
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -25,15 +24,10 @@ import numpy as np
 from contract import POINT_FIELDS, REQUIRED_FIELDS
 from model.config import CLASS_NAMES, PHiMConfig
 from model.data.labels import labeled_targets
-from model.data.types import GroundTruth, LabeledScan
+from model.data.types import GroundTruth, LabeledScan, Spin
 
 SCAN_SUFFIXES = (".bin", ".npz")
 DEFAULT_SECTORS = PHiMConfig.sectors_per_turn  # the model's default sectors per turn (4)
-
-
-class Spin(enum.StrEnum):
-    CCW = "ccw"  # azimuth increases with time (seen from above): Velodyne/KITTI, Waymo
-    CW = "cw"  # azimuth decreases with time: e.g. nuScenes LIDAR_TOP
 
 
 @dataclass(frozen=True)
@@ -193,13 +187,13 @@ def read_labeled(path: Path, sectors: int = DEFAULT_SECTORS, origin: np.ndarray 
     boxes, labels, label_fov = labeled_targets(path, origin)
     gt = GroundTruth.from_boxes(boxes, labels, points)
     sector = sector_of_xy(points[:, 0], points[:, 1], sectors)  # (N,)
-    return LabeledScan(scan.name, points, fields, gt, scan.time, sector, label_fov)
+    return LabeledScan(scan.name, points, fields, gt, scan.time, sector, label_fov, scan.spin)
 
 
-def write_labeled(
-    path: Path, scan: LabeledScan, spin: Spin = Spin.CCW, timestamp_ns: int | None = None
-) -> None:
-    """Write a `LabeledScan` as a native .npz (points, fields, ground truth, time, label_fov);
+def write_labeled(path: Path, scan: LabeledScan, timestamp_ns: int | None = None) -> None:
+    """Write a `LabeledScan` as a native .npz (points, fields, spin, ground truth, time, label_fov);
     `read_labeled` reads it back (point counts, difficulty and sectors are recomputed from the points)."""
     gt, time, fov = scan.gt, scan.time, scan.label_fov
-    write_native_scan(path, scan.points, scan.fields, spin, timestamp_ns, gt=gt, time=time, label_fov=fov)
+    write_native_scan(
+        path, scan.points, scan.fields, scan.spin, timestamp_ns, gt=gt, time=time, label_fov=fov
+    )

@@ -9,6 +9,7 @@ point at all is not a target (evaluation drops it).
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,16 @@ class GroundTruth:
         return GroundTruth(self.boxes[keep], self.labels[keep], self.num_points[keep], self.difficulty[keep])
 
 
+class Spin(enum.StrEnum):
+    CCW = "ccw"  # azimuth increases with time (seen from above): Velodyne/KITTI, Waymo
+    CW = "cw"  # azimuth decreases with time: e.g. nuScenes LIDAR_TOP
+
+    def order(self, sectors: int, first: int = 0) -> list[int]:
+        """The sector indices a sweep starting in sector `first` passes, in time order."""
+        step = 1 if self is Spin.CCW else -1
+        return [(first + step * i) % sectors for i in range(sectors)]
+
+
 @dataclass(frozen=True)
 class LabeledScan:
     name: str
@@ -57,6 +68,7 @@ class LabeledScan:
     sector: np.ndarray | None = None  # (N,) int64 each point's sector (model.sectors.sector_of_points)
     # the azimuth range [lo, hi) in radians the labels cover (KITTI: the front camera); None: all around
     label_fov: tuple[float, float] | None = None
+    spin: Spin = Spin.CCW  # the sweep's direction: the order its sectors come in
 
 
 @dataclass(frozen=True)

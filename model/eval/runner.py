@@ -39,17 +39,29 @@ def _select(p: Predictions, keep: np.ndarray) -> Predictions:
 
 
 def truths_by_fill(scan: LabeledScan, sectors: int) -> list[GroundTruth]:
-    """The ground truth prediction b (b buffered sectors) is scored against: boxes centred in sectors 0..b."""
+    """The ground truth prediction b (b buffered sectors) is scored against: boxes centred in the first b + 1
+    sectors of the sweep (sector 0 first, in the scan's spin order)."""
+    order = scan.spin.order(sectors)
     gt_sector = sector_of_xy(scan.gt.boxes[:, 0], scan.gt.boxes[:, 1], sectors)  # (M,)
-    return [scan.gt.select(gt_sector <= b) for b in range(sectors)]
+    return [scan.gt.select(np.isin(gt_sector, order[: b + 1])) for b in range(sectors)]
 
 
-def crop_prediction(p: Predictions, b: int, sectors: int, fov: tuple[float, float] | None) -> Predictions:
-    """Prediction b keeps the boxes centred in sectors 0..b (all of them for the full turn) and in `fov`."""
-    p = crop_to_fov(p, fov)
+def crop_prediction(p: Predictions, b: int, scan: LabeledScan, sectors: int) -> Predictions:
+    """Prediction b keeps the boxes centred in the sweep's first b + 1 sectors (all of them for the full turn)
+    and in the scan's `label_fov`."""
+    p = crop_to_fov(p, scan.label_fov)
     if b < sectors - 1:
-        p = _select(p, sector_of_xy(p.boxes[:, 0], p.boxes[:, 1], sectors) <= b)
+        seen = scan.spin.order(sectors)[: b + 1]
+        p = _select(p, np.isin(sector_of_xy(p.boxes[:, 0], p.boxes[:, 1], sectors), seen))
     return p
+
+
+def scan_sectors(scan: LabeledScan, point_features: int, sectors: int) -> list[torch.Tensor]:
+    """The scan's points cut into `sectors` azimuth sectors (N_k, C), in sweep order: sector 0 first, then
+    by the scan's spin (as a sensor starting its turn in sector 0 sends them)."""
+    points = feature_columns(scan, point_features)  # (N, C)
+    sector = sector_of_xy(points[:, 0], points[:, 1], sectors)  # (N,)
+    return [torch.from_numpy(np.ascontiguousarray(points[sector == k])) for k in scan.spin.order(sectors)]
 
 
 @torch.inference_mode()
@@ -57,19 +69,14 @@ def predict_scan(model: PHiM, scan: LabeledScan, precision: Precision = Precisio
     """The predictions at every fill level; the forward runs in `precision`, the decoding in float32."""
     cfg = model.cfg
     n = cfg.sectors_per_turn
-    points = feature_columns(scan, cfg.vfe.point_features)  # (N, C)
-    sector = sector_of_xy(points[:, 0], points[:, 1], n)  # (N,)
-    sectors = [torch.from_numpy(np.ascontiguousarray(points[sector == k])).to(model.device) for k in range(n)]
+    sectors = [s.to(model.device) for s in scan_sectors(scan, cfg.vfe.point_features, n)]
     with autocast(precision, model.device):
         enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
         maps = model.predict([enc.sectors[: b + 1] for b in range(n)])  # float32 maps
     dets = decode(maps, cfg.head, cfg.bev)
     preds = [
         crop_prediction(
-            Predictions(d.boxes.cpu().numpy(), d.scores.cpu().numpy(), d.labels.cpu().numpy()),
-            b,
-            n,
-            scan.label_fov,
+            Predictions(d.boxes.cpu().numpy(), d.scores.cpu().numpy(), d.labels.cpu().numpy()), b, scan, n
         )
         for b, d in enumerate(dets)
     ]
@@ -79,7 +86,7 @@ def predict_scan(model: PHiM, scan: LabeledScan, precision: Precision = Precisio
 def rescore_scan(scan: LabeledScan, by_fill: list[Predictions]) -> ScanResult:
     """Predictions read back from a file (one per fill level) -> the ScanResult `score` takes."""
     n = len(by_fill)
-    preds = [crop_prediction(p, b, n, scan.label_fov) for b, p in enumerate(by_fill)]
+    preds = [crop_prediction(p, b, scan, n) for b, p in enumerate(by_fill)]
     return ScanResult(scan.name, preds, truths_by_fill(scan, n))
 
 

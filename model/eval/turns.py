@@ -10,25 +10,19 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-import numpy as np
-import torch
-
 from model.config import Precision
-from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import LabeledScan, Predictions
 from model.detector import PHiM
 from model.eval.metrics import MetricsConfig, evaluate
-from model.eval.runner import ScanResult, crop_prediction, truths_by_fill
+from model.eval.runner import ScanResult, crop_prediction, scan_sectors, truths_by_fill
 from model.stream import StreamingDetector
 
 
 def stream_turns(det: StreamingDetector, scan: LabeledScan, turns: int) -> list[ScanResult]:
-    """The scan's `turns` turns as one stream, sectors 0 .. S-1 each turn -> per turn the ScanResult of its
+    """The scan's `turns` turns as one stream, in sweep order each turn -> per turn the ScanResult of its
     last sector (the full-turn prediction: it sees the new sector and the S - 1 buffered ones)."""
     n = det.cfg.sectors_per_turn
-    points = feature_columns(scan, det.cfg.vfe.point_features)  # (N, C)
-    sector = sector_of_xy(points[:, 0], points[:, 1], n)  # (N,)
-    sectors = [torch.from_numpy(np.ascontiguousarray(points[sector == k])) for k in range(n)]
+    sectors = scan_sectors(scan, det.cfg.vfe.point_features, n)
     state, out = det.init_state(), []
     for _ in range(turns):
         for s in sectors:
@@ -36,9 +30,7 @@ def stream_turns(det: StreamingDetector, scan: LabeledScan, turns: int) -> list[
         d = r.detections
         pred = Predictions(d.boxes.cpu().numpy(), d.scores.cpu().numpy(), d.labels.cpu().numpy())
         out.append(
-            ScanResult(
-                scan.name, [crop_prediction(pred, n - 1, n, scan.label_fov)], truths_by_fill(scan, n)[-1:]
-            )
+            ScanResult(scan.name, [crop_prediction(pred, n - 1, scan, n)], truths_by_fill(scan, n)[-1:])
         )
     return out
 

@@ -1,11 +1,13 @@
 """Training samples: one augmented scan cut into the model's sectors in time order, with the targets of
 every buffer fill level.
 
-A sample's sectors run in time order starting at a random sector (a stream can start anywhere in the turn).
+A sample's sectors run in time order starting at a random sector (a stream can start anywhere in the turn),
+counter-clockwise or, with chance `clockwise`, clockwise (sensors spin either way: KITTI's and Waymo's
+counter-clockwise, nuScenes' clockwise).
 The model encodes them as one stream, so the global Mamba carries its state from sector to sector exactly as
 when streaming (causal: nothing of a later sector reaches an earlier one). Prediction k (k = 0 .. S-1) is
-made from sectors 0 .. k, that is the new sector k with k buffered ones, and its targets are the boxes whose
-centre lies in those sectors: every fill level of the buffer is learned in every step.
+made from the first k + 1 sectors in time, that is the new one with k buffered ones, and its targets are the
+boxes whose centre lies in those sectors: every fill level of the buffer is learned in every step.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from model.config import PHiMConfig
 from model.data.readers import feature_columns, sector_of_xy
-from model.data.types import LabeledScan
+from model.data.types import LabeledScan, Spin
 from model.layers.head_targets import BEVTargets, TargetConfig, build_targets
 
 
@@ -37,6 +39,7 @@ class SampleConfig:
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     targets: TargetConfig = field(default_factory=TargetConfig)
     random_start: bool = True  # the first sector in time is random (else sector 0)
+    clockwise: float = 0.5  # chance that the sectors run clockwise (a sensor spinning the other way round)
 
 
 @dataclass(frozen=True)
@@ -88,7 +91,7 @@ def make_sample(
     points, boxes = augment(points, scan.gt.boxes, rng, cfg.augment)
     n = model_cfg.sectors_per_turn
     start = int(rng.integers(n)) if cfg.random_start else 0
-    order = [(start + i) % n for i in range(n)]
+    order = (Spin.CW if rng.random() < cfg.clockwise else Spin.CCW).order(n, start)
     point_sector = sector_of_xy(points[:, 0], points[:, 1], n)  # (N,)
     box_sector = sector_of_xy(boxes[:, 0], boxes[:, 1], n)  # (M,)
     target = is_target(boxes, scan.gt.num_points, model_cfg)
