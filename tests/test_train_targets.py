@@ -178,3 +178,22 @@ def test_samples_spin_both_ways():
         k = [int(sector_of_xy(x[:2, 0].numpy(), x[:2, 1].numpy(), 4)[0]) for x in s.sectors[:2]]
         steps.append((k[1] - k[0]) % 4)
     assert set(steps) == {1, 3} and 10 < steps.count(3) < 30
+
+
+def test_intensity_is_scaled_per_scan_and_sometimes_constant():
+    """Real intensities differ by sensor (KITTI's median 0.3, nuScenes' 0.05, the Argoverse conversion a
+    constant 1.0): a scan's intensities get one gain, and now and then a single value."""
+    scan = _scan()
+    points = scan.points.copy()
+    points[:, 3] = np.linspace(0.0, 0.5, len(points))
+    cfg = AugmentConfig(rotate=False, flip=False, scale=(1.0, 1.0), constant_intensity=0.3)
+    gains, constants = [], 0
+    for seed in range(60):
+        p, _ = augment(points, BOXES, np.random.default_rng(seed), cfg)
+        np.testing.assert_array_equal(p[:, :3], points[:, :3])
+        assert 0.0 <= p[:, 3].min() and p[:, 3].max() <= 1.0
+        if np.ptp(p[:, 3]) == 0:
+            constants += 1
+        else:
+            gains.append(p[1000, 3] / points[1000, 3])
+    assert 8 < constants < 30 and min(gains) < 0.8 and max(gains) > 1.4

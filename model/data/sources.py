@@ -1,6 +1,7 @@
 """Scan sources by index, for training and evaluation: `source(i) -> LabeledScan`.
 
-- `sim`: scan i of stream `seed` is `simulate(sim_seed(seed, i))`, an endless, reproducible stream. Training
+- `sim`: scan i of stream `seed` is `simulate(sim_seed(seed, i), SimConfig.varied())`, an endless,
+  reproducible stream (sensor presets, mounts, noise and speed drawn per scan: docs/simulator.md). Training
   uses stream 0 by default and evaluation stream 7, so held-out scans are never trained on.
 - recorded data (`kitti:DIR`, `nuscenes:DIR`, `native:DIR`, `samples[:DIR]`): the folder's scans, cycled;
   training visits them in a fresh random order every pass (seeded), evaluation in file order. Samples are
@@ -34,7 +35,7 @@ def sim_seed(stream: int, index: int) -> int:
 @dataclass(frozen=True)
 class SimSource:
     stream: int
-    cfg: SimConfig = field(default_factory=SimConfig)
+    cfg: SimConfig = field(default_factory=SimConfig.varied)  # every sensor preset, mount, noise, speed
 
     def __call__(self, index: int) -> LabeledScan:
         scan = simulate(sim_seed(self.stream, index), self.cfg)

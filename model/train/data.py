@@ -32,6 +32,11 @@ class AugmentConfig:
     rotate: bool = True  # a uniform random yaw about z, before the scan is cut into sectors
     flip: bool = True  # mirror left/right (y -> -y) with probability 0.5
     scale: tuple[float, float] = (0.95, 1.05)  # uniform global scale of points and boxes
+    # intensity (column 3) differs by sensor and driver: a gain drawn log-uniformly per scan (clipped to
+    # [0, 1]), and with chance `constant_intensity` one value for every point (data without intensity, such
+    # as the Argoverse conversion's constant 1.0)
+    intensity_gain: tuple[float, float] = (0.5, 2.0)
+    constant_intensity: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -71,7 +76,19 @@ def augment(
         p[:, :3] *= k
         b[:, :6] *= k
     b[:, 6] = (b[:, 6] + math.pi) % (2 * math.pi) - math.pi
+    if p.shape[1] > 3:
+        _intensity(p[:, 3], rng, cfg)
     return p, b
+
+
+def _intensity(values: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> None:
+    """Augment the intensity column (N,) in place."""
+    lo, hi = cfg.intensity_gain
+    if hi > lo:
+        values *= math.exp(rng.uniform(math.log(lo), math.log(hi)))
+        np.clip(values, 0.0, 1.0, out=values)
+    if rng.random() < cfg.constant_intensity:
+        values[:] = rng.choice([0.0, 1.0, rng.random()])
 
 
 def is_target(boxes: np.ndarray, num_points: np.ndarray, model_cfg: PHiMConfig) -> np.ndarray:

@@ -17,6 +17,7 @@ from model.data.sim import stats
 from model.data.sim.clutter import sidewalk_spot
 from model.data.sim.ground import Ground
 from model.data.sim.layout import Occupancy, Road, crossing_span, footprint
+from model.data.sim.parts import Obstacles
 from model.data.sim.raycast import Num, SolidList
 
 PAINT = np.array([0.06, 0.12, 0.25, 0.35, 0.5, 0.7])  # car paint reflectivities: black .. white
@@ -26,6 +27,8 @@ CABIN_BEHIND = ((0.17, 0.25), (0.02, 0.06), (0.3, 0.4))  # what follows the cabi
 TRUCK_SHARE = 0.6  # of large vehicles; the rest are buses
 LIGHT_DEPTH = 0.02  # metres: the rear lights fill the back of the label box, the body ends in front of them
 BACKPACK_SHARE = 0.35  # of pedestrians
+ROW_BREAK = 0.12  # chance that a parked row breaks after a car (a driveway, a hydrant, an empty stretch)
+ROW_BREAK_M = (4.0, 20.0)  # length of such a break
 
 
 @dataclass(frozen=True)
@@ -61,6 +64,8 @@ def vehicle_candidates(
             room = road.parking_width + 0.3 if parked else road.lane_width - 0.3
             size[:, 1] = np.minimum(size[:, 1], room)
             gap = rng.uniform(*(stats.PARKED_GAP_M if parked else stats.MOVING_GAP_M), n)
+            if parked:  # rows with breaks; the gaps within a row stay the measured ones
+                gap += (rng.random(n) < ROW_BREAK) * rng.uniform(*ROW_BREAK_M, n)
             s = -reach + rng.uniform(0, 5) + np.cumsum(size[:, 0] + gap) - size[:, 0] / 2  # (n,) centres
             xy = road.point(s, np.full(n, lateral))  # (n, 2)
             yaw = heading + rng.normal(0, 0.05 if parked else 0.03, n)
@@ -73,6 +78,16 @@ def vehicle_candidates(
             boxes.append(np.column_stack([xy, z, size, yaw])[keep])
             large.append(big[keep])
     return Candidates(np.concatenate(boxes), np.concatenate(large))
+
+
+def driveway_candidates(rng: np.random.Generator, slots: np.ndarray) -> Candidates:
+    """Cars parked in driveways: slots (K, 5) x, y, ground z, heading, room -> one car per slot that fits,
+    facing the house or the street."""
+    size = stats.CAR.draw(rng, len(slots))  # (K, 3)
+    fits = size[:, 0] <= slots[:, 4]
+    yaw = slots[:, 3] + np.where(rng.random(len(slots)) < 0.5, 0.0, math.pi)
+    boxes = np.column_stack([slots[:, :2], slots[:, 2] + size[:, 2] / 2, size, yaw])[fits]
+    return Candidates(boxes, np.zeros(len(boxes), bool))
 
 
 def _crossing(
@@ -159,9 +174,11 @@ def select(
     outside: int,
     radius: float,
     reach: float,
+    obstacles: Obstacles | None = None,
 ) -> Candidates:
     """Keep up to `inside` candidates within `radius` of the sensor and `outside` between it and `reach`,
-    in random order, skipping those that overlap anything taken; the kept ones take their place."""
+    in random order, skipping those that overlap anything taken or any of the `obstacles` (scenery); the kept
+    ones take their place."""
     order = rng.permutation(len(cands.boxes))
     dist = np.hypot(cands.boxes[:, 0], cands.boxes[:, 1])
     keep, room = [], {True: inside, False: outside}
@@ -170,7 +187,7 @@ def select(
         if room[near] == 0 or dist[i] > reach:
             continue
         xy, r = discs(cands.boxes[i])
-        if occ.free(xy, r):
+        if occ.free(xy, r) and (obstacles is None or obstacles.clear(cands.boxes[i])):
             occ.take(xy, r)
             keep.append(i)
             room[near] -= 1

@@ -1,4 +1,5 @@
-"""`phim sim` (one simulated scan: a summary line and a bird's-eye-view PNG) and `phim bench sim`."""
+"""`phim sim` (one simulated scan: a summary line and a bird's-eye-view PNG), `phim sim compare` (simulated
+against real scans) and `phim bench sim`."""
 
 from __future__ import annotations
 
@@ -25,7 +26,17 @@ sensor_option = click.option(
 )
 
 
-def _config(sensors: tuple[Sensor, ...]) -> SimConfig:
+varied_option = click.option(
+    "--varied",
+    is_flag=True,
+    help="Draw the sensor side per seed (SimConfig.varied(): height, beam errors, noise, intensity, motion); "
+    "--sensor limits the presets drawn.",
+)
+
+
+def _config(sensors: tuple[Sensor, ...], varied: bool = False) -> SimConfig:
+    if varied:
+        return SimConfig.varied(**({"sensors": tuple(sensors)} if sensors else {}))
     if not sensors:
         return SimConfig()
     if len(sensors) == 1:
@@ -64,20 +75,80 @@ def draw_scan(path: Path, scan: LabeledScan, extent_m: float = 50.0) -> Path:
     return save_figure(plt, fig, path)
 
 
-@click.command()
+@click.group(invoke_without_command=True)
 @click.option("--seed", type=int, default=0, show_default=True, help="Scene seed.")
 @sensor_option
+@varied_option
 @click.option(
     "--png", type=click.Path(dir_okay=False, path_type=Path), help="Write the bird's-eye view here."
 )
 @click.option("--extent", type=click.FloatRange(1.0), default=50.0, show_default=True, help="Half width (m).")
-def sim_cmd(seed: int, sensors: tuple[Sensor, ...], png: Path | None, extent: float) -> None:
+@click.pass_context
+def sim_cmd(
+    ctx: click.Context, seed: int, sensors: tuple[Sensor, ...], varied: bool, png: Path | None, extent: float
+) -> None:
     """Simulate one LiDAR turn through a random street scene and summarize it."""
+    if ctx.invoked_subcommand is not None:
+        return
     start = time.perf_counter()
-    scan = simulate(seed, _config(sensors))
+    scan = simulate(seed, _config(sensors, varied))
     click.echo(summary(scan, time.perf_counter() - start))
     if png is not None:
         click.echo(f"wrote {draw_scan(png, scan, extent)}")
+
+
+@sim_cmd.command("compare")
+@click.option(
+    "--seeds", type=click.IntRange(1), default=10, show_default=True, help="Simulated scans per sensor."
+)
+@click.option(
+    "--sensor",
+    "sensors",
+    type=EnumValue(Sensor),
+    multiple=True,
+    help="Sensor preset (repeatable) [default: those with real samples: hdl64e, hdl32e, vlp32c-pair].",
+)
+@click.option(
+    "--samples",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="The real LiDAR samples [default: model.data.samples.SAMPLES_DIR]; missing: simulated rows only.",
+)
+@click.option(
+    "--png",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Also draw simulated HDL-64E scan --png-seed beside real KITTI scan --png-frame here.",
+)
+@click.option("--png-seed", type=int, default=24, show_default=True, help="Simulated seed of the picture.")
+@click.option("--png-frame", type=click.IntRange(0, 5), default=5, show_default=True, help="KITTI frame.")
+def compare_cmd(
+    seeds: int,
+    sensors: tuple[Sensor, ...],
+    samples: Path | None,
+    png: Path | None,
+    png_seed: int,
+    png_frame: int,
+) -> None:
+    """Simulated scans against the real samples: ranges, heights, intensity, clutter (Markdown tables)."""
+    from model.data.samples import SAMPLES_DIR
+    from model.data.sim.compare import (
+        REAL,
+        REAL_FOR,
+        RealSet,
+        compare,
+        draw_side_by_side,
+        format_tables,
+        real_clouds,
+        sim_clouds,
+    )
+
+    root = SAMPLES_DIR if samples is None else samples
+    click.echo(format_tables(compare(sensors or tuple(REAL_FOR), seeds, root)))
+    if png is not None:
+        real = real_clouds(RealSet.KITTI, root)[png_frame]
+        sim = sim_clouds(REAL[RealSet.KITTI].sim, range(png_seed, png_seed + 1))[0]
+        titles = (f"simulated HDL-64E, seed {png_seed}", f"real KITTI {png_frame:06d}")
+        click.echo(f"wrote {draw_side_by_side(png, sim, real, titles)}")
 
 
 @click.command()
@@ -85,10 +156,11 @@ def sim_cmd(seed: int, sensors: tuple[Sensor, ...], png: Path | None, extent: fl
     "--seeds", type=click.IntRange(1), default=20, show_default=True, help="Timed scans, seeds 1..N."
 )
 @sensor_option
+@varied_option
 @json_option
-def bench_sim_cmd(seeds: int, sensors: tuple[Sensor, ...], as_json: bool) -> None:
+def bench_sim_cmd(seeds: int, sensors: tuple[Sensor, ...], varied: bool, as_json: bool) -> None:
     """Simulator throughput, single-threaded: scans per second over N seeds."""
-    cfg = _config(sensors)
+    cfg = _config(sensors, varied)
     simulate(0, cfg)
     seconds, points, boxes = [], [], []
     for seed in range(1, seeds + 1):
@@ -99,7 +171,8 @@ def bench_sim_cmd(seeds: int, sensors: tuple[Sensor, ...], as_json: bool) -> Non
         boxes.append(np.bincount(scan.gt.labels, minlength=len(CLASS_NAMES)))
     per_class = np.mean(boxes, axis=0)
     result = {
-        "sensor": ",".join(s.value for s in sensors) if sensors else Sensor.HDL64E.value,
+        "sensor": ("varied:" if varied else "")
+        + (",".join(s.value for s in sensors) or ("all" if varied else Sensor.HDL64E.value)),
         "scans": seeds,
         "scans_per_s": seeds / sum(seconds),
         "mean_ms": 1e3 * statistics.fmean(seconds),

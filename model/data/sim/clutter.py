@@ -9,9 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from model.data.sim import vegetation
 from model.data.sim.ground import Ground
 from model.data.sim.layout import Occupancy, Road
-from model.data.sim.raycast import SolidList
+from model.data.sim.parts import FURNITURE, TaggedSolidList
 
 
 @dataclass(frozen=True)
@@ -45,13 +46,13 @@ def sidewalk_spot(
     return Spot(xy[0], z, road.yaw, i, side)
 
 
-def _pole(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+def _pole(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
     r = rng.uniform(0.1, 0.2)
     solids.cylinders(spot.xy, spot.z - 0.2, spot.z + rng.uniform(5, 9), r, rng.uniform(0.3, 0.5))
     return r
 
 
-def _sign(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+def _sign(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
     top = spot.z + rng.uniform(2.0, 2.8)
     size = rng.uniform(0.6, 0.9)
     solids.cylinders(spot.xy, spot.z - 0.2, top, 0.04, 0.4)
@@ -59,26 +60,22 @@ def _sign(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
     return size / 2
 
 
-def _tree(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
-    crown_base = spot.z + rng.uniform(2.0, 3.5)
-    solids.cylinders(spot.xy, spot.z - 0.2, crown_base + 0.5, rng.uniform(0.12, 0.3), rng.uniform(0.2, 0.35))
-    crown = rng.uniform(1.2, 3.0)
-    top = crown_base + rng.uniform(2.5, 6.0)
-    solids.cylinders(spot.xy, crown_base, top, crown, rng.uniform(0.35, 0.65), porosity=0.45)
+def _tree(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
+    vegetation.trees(solids, rng, spot.xy[None], np.array([spot.z]), vegetation.STREET_TREE)
     return 0.4
 
 
-def _hydrant(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+def _hydrant(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
     solids.cylinders(spot.xy, spot.z - 0.1, spot.z + rng.uniform(0.6, 0.8), 0.15, 0.45)
     return 0.2
 
 
-def _bollard(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+def _bollard(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
     solids.cylinders(spot.xy, spot.z - 0.1, spot.z + rng.uniform(0.9, 1.1), 0.1, rng.uniform(0.3, 0.8))
     return 0.15
 
 
-def _bin(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+def _bin(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
     length, width = rng.uniform(0.5, 0.8, 2)
     yaw = spot.yaw + rng.uniform(-0.3, 0.3)
     solids.boxes(
@@ -87,13 +84,13 @@ def _bin(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
     return 0.5
 
 
-def _bush(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+def _bush(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
     r = rng.uniform(0.3, 0.9)
-    solids.cylinders(spot.xy, spot.z - 0.1, spot.z + rng.uniform(0.5, 1.6), r, rng.uniform(0.35, 0.6), 0.3)
-    return r
+    vegetation.bushes(solids, rng, spot.xy[None], np.array([spot.z]), np.array([r]), rng.uniform(0.5, 1.6, 1))
+    return r + 0.2
 
 
-def _board(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+def _board(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
     """A sign board, mailbox or parking meter: a pedestrian-sized box."""
     yaw = spot.yaw + rng.uniform(-math.pi, math.pi)
     length, width = rng.uniform(0.3, 0.6), rng.uniform(0.4, 0.7)
@@ -103,7 +100,7 @@ def _board(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
     return 0.45
 
 
-def _bicycle(solids: SolidList, rng: np.random.Generator, spot: Spot) -> float:
+def _bicycle(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
     """A parked bicycle without a rider (not a CYCLIST target)."""
     yaw = spot.yaw + (math.pi / 2 if rng.random() < 0.5 else 0.0)
     solids.boxes(spot.xy, spot.z, spot.z + 1.0, rng.uniform(1.6, 1.9), 0.12, yaw, rng.uniform(0.3, 0.6), 0.5)
@@ -125,7 +122,7 @@ KINDS: tuple[tuple[str, tuple[float, float], float, Callable[..., float]], ...] 
 
 
 def clutter(
-    solids: SolidList,
+    solids: TaggedSolidList,
     occ: Occupancy,
     rng: np.random.Generator,
     roads: list[Road],
@@ -141,5 +138,6 @@ def clutter(
         spot = sidewalk_spot(rng, roads, ground, reach, band)
         if spot is None or not occ.free(spot.xy[None], np.array([0.5])):
             continue
+        solids.tag = FURNITURE
         r = build(solids, rng, spot)
         occ.take(spot.xy, np.array([r]))

@@ -1,5 +1,5 @@
-"""Street layout: roads (lanes, parking, sidewalks), the ground, sidewalk slabs with curbs, buildings, and
-static clutter (poles, signs, trees, bushes, bins, hydrants, bollards, parked bicycles).
+"""Street layout: roads (lanes, parking, sidewalks), the ground (grade, bumps, crossfall) and the sidewalk
+slabs with their curbs. What stands beside the roads is in frontage.py (by layout: urban, suburban, open).
 
 Everything is in the sensor frame (x forward, y left, z up); the sensor sits on road 0. Right-hand traffic:
 a road's forward lanes lie right of its centre line (negative lateral offset), oncoming lanes left of it.
@@ -18,6 +18,8 @@ from model.data.sim.raycast import SolidList
 SLAB_LENGTH = 6.0  # metres of sidewalk per slab (each sits level at the ground height of its centre)
 SLAB_DEPTH = 0.5  # how far a slab reaches below the ground
 LOT_DEPTH = 12.0  # raised ground behind the sidewalk (under buildings and in the gaps between them)
+URBAN, SUBURBAN, OPEN = 0, 1, 2  # layouts (SceneConfig.layouts)
+LAYOUT_NAMES = ("urban", "suburban", "open")
 
 
 @dataclass(frozen=True)
@@ -28,8 +30,10 @@ class Road:
     lane_width: float
     parking: tuple[bool, bool]  # a parking lane on the right, on the left
     parking_width: float
-    sidewalk: float  # sidewalk width (m)
+    sidewalk: float  # sidewalk width (m; a grass verge in open layouts)
     curb: float  # curb height (m)
+    layout: int = URBAN
+    lot: float = LOT_DEPTH  # raised ground behind the sidewalk (m)
 
     @property
     def u(self) -> np.ndarray:
@@ -43,6 +47,14 @@ class Road:
         """Lateral offset of the curb: side -1 right, +1 left."""
         park = self.parking[0] if side < 0 else self.parking[1]
         return side * (self.lanes * self.lane_width + park * self.parking_width)
+
+    def back(self, side: int) -> float:
+        """Lateral offset of the back of the sidewalk (where lots, yards and vegetation begin)."""
+        return self.edge(side) + side * self.sidewalk
+
+    def outward(self, side: int, s: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """(K,) along, (K,) metres beyond the back of the sidewalk on `side` -> (K, 2) points."""
+        return self.point(s, self.back(side) + side * np.asarray(d, np.float64))
 
     def point(self, s: np.ndarray, lateral: np.ndarray) -> np.ndarray:
         """(K,) along, (K,) lateral -> (K, 2) sensor-frame points."""
@@ -88,15 +100,41 @@ class Occupancy:
         self.r = np.concatenate([self.r, np.asarray(r, np.float64).reshape(-1)])
 
 
+def clear_of(others: list[Road], corners: np.ndarray, margin: float = 0.5) -> np.ndarray:
+    """(K, C, 2) footprints -> (K,) bool: off the carriageways and sidewalks (grown by margin) of `others`."""
+    keep = np.ones(len(corners), bool)
+    for o in others if len(corners) else ():
+        keep &= ~o.overlaps(corners, margin=o.sidewalk + margin)
+    return keep
+
+
+def disc_corners(xy: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(K, 2) centres, (K,) radii -> (K, 4, 2) corners of their bounding squares."""
+    signs = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], np.float64)  # (4, 2)
+    return xy[:, None, :] + signs[None] * np.asarray(r, np.float64).reshape(-1, 1, 1)
+
+
+def ground_z(ground: Ground, road: Road, xy: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(K, 2) points `d` (K,) metres beyond the back of a sidewalk -> (K,) ground z (raised on the lot)."""
+    z = ground.height_at(xy[:, 0], xy[:, 1])
+    return z + np.where(np.asarray(d) < road.lot, road.curb, 0.0)
+
+
 def make_ground(
-    rng: np.random.Generator, height: float, max_slope: float, bump: float, roads: list[Road]
+    rng: np.random.Generator,
+    height: float,
+    max_slope: float,
+    bump: float,
+    roads: list[Road],
+    crossfall: tuple[float, float] = (0.0, 0.0),
 ) -> Ground:
-    """A plane of slope up to `max_slope`, three long bumps of up to `bump` metres, the roads' lane lines."""
+    """A plane of slope up to `max_slope`, three long bumps of up to `bump` metres, the roads' lane lines and
+    a crossfall drawn from `crossfall` on road 0 (it falls from the centre line to both curbs)."""
     slope = rng.uniform(0, max_slope) * np.array([math.cos(a := rng.uniform(0, 2 * math.pi)), math.sin(a)])
     wavelength = rng.uniform(20.0, 60.0, 3)  # metres
     heading = rng.uniform(0, 2 * math.pi, 3)
     wave = (2 * math.pi / wavelength)[:, None] * np.stack([np.cos(heading), np.sin(heading)], 1)  # (3, 2)
-    lines = []
+    lines, road0 = [], roads[0]
     for i, road in enumerate(roads):
         gap = _crossing_gap(road, [r for j, r in enumerate(roads) if j != i])
         lines.append([*road.origin, *road.u, road.lane_width, road.lanes, *gap])
@@ -108,6 +146,7 @@ def make_ground(
         phase=rng.uniform(0, 2 * math.pi, 3),
         asphalt=float(rng.uniform(*ASPHALT)),
         lines=np.asarray(lines, np.float64).reshape(-1, 8),
+        crowns=np.array([[*road0.origin, *road0.u, rng.uniform(*crossfall), road0.edge(-1), road0.edge(1)]]),
     )
 
 
@@ -130,7 +169,7 @@ def sidewalks(
     for i, road in enumerate(roads):
         others = [r for j, r in enumerate(roads) if j != i]
         s = np.arange(-reach, reach, SLAB_LENGTH) + SLAB_LENGTH / 2  # (K,)
-        width = road.sidewalk + LOT_DEPTH
+        width = road.sidewalk + road.lot
         for side in (-1, 1):
             centre = road.point(s, np.full_like(s, road.edge(side) + side * width / 2))  # (K, 2)
             yaw = np.full(len(s), road.yaw)
@@ -139,53 +178,3 @@ def sidewalks(
             top = ground.height_at(centre[keep, 0], centre[keep, 1]) + road.curb
             refl = rng.uniform(0.25, 0.45, int(keep.sum()))
             solids.boxes(centre[keep], top - road.curb - SLAB_DEPTH, top, SLAB_LENGTH, width, road.yaw, refl)
-
-
-def buildings(
-    solids: SolidList, rng: np.random.Generator, roads: list[Road], ground: Ground, reach: float
-) -> None:
-    """Rows of buildings (walls facing the street) behind the sidewalks, with gaps, fences and hedges."""
-    for i, road in enumerate(roads):
-        others = [r for j, r in enumerate(roads) if j != i]
-        for side in (-1, 1):
-            s = -reach + rng.uniform(0, 10)
-            while s < reach:
-                length, gap = rng.uniform(8, 40), rng.uniform(0, 14) * (rng.random() < 0.6)
-                setback, depth = rng.uniform(0, 4), rng.uniform(8, 20)
-                lateral = road.edge(side) + side * (road.sidewalk + setback + depth / 2)
-                c = road.point(np.array([s + length / 2]), np.array([lateral]))  # (1, 2)
-                box = footprint(c, np.array([length]), np.array([depth]), np.array([road.yaw]))
-                if not any(o.overlaps(box, margin=o.sidewalk + 1)[0] for o in others):
-                    z = ground.height_at(c[:, 0], c[:, 1])
-                    solids.boxes(
-                        c, z - 1, z + rng.uniform(3, 25), length, depth, road.yaw, rng.uniform(0.15, 0.6)
-                    )
-                if gap > 2:
-                    _fill_gap(solids, rng, road, side, s + length, gap, ground, others)
-                s += length + gap
-
-
-def _fill_gap(
-    solids: SolidList,
-    rng: np.random.Generator,
-    road: Road,
-    side: int,
-    s: float,
-    gap: float,
-    ground: Ground,
-    others: list[Road],
-) -> None:
-    """A fence or a hedge along the building line of a gap between buildings (or nothing)."""
-    pick = rng.random()
-    if pick > 0.6:
-        return
-    hedge = pick < 0.3
-    thick, height = (rng.uniform(0.6, 1.2), rng.uniform(0.8, 1.6)) if hedge else (0.1, rng.uniform(1.0, 2.2))
-    lateral = road.edge(side) + side * (road.sidewalk + rng.uniform(0.2, 1.5) + thick / 2)
-    c = road.point(np.array([s + gap / 2]), np.array([lateral]))
-    box = footprint(c, np.array([gap]), np.array([thick]), np.array([road.yaw]))
-    if any(o.overlaps(box, margin=1.0)[0] for o in others):
-        return
-    z = ground.height_at(c[:, 0], c[:, 1]) + road.curb
-    refl, porosity = (rng.uniform(0.35, 0.6), 0.35) if hedge else (rng.uniform(0.2, 0.5), 0.3)
-    solids.boxes(c, z - 0.2, z + height, gap, thick, road.yaw, refl, porosity)

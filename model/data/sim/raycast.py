@@ -1,19 +1,24 @@
 """Vectorized ray casting of a spinning LiDAR through solids (yawed boxes, vertical cylinders).
 
-All rays start at the sensor (the origin). Ray (f, b) is firing f at azimuth -pi + (f + 0.5) * 2pi / F and
-beam b at elevation `elevations[b]` (descending); its index is f * B + b, which is firing order. Each solid
-is culled to the firings inside its azimuth span and the beams inside its elevation span, so only those
-ray/solid pairs are tested (no Python loop over rays or solids).
+Ray (f, b) is firing f at azimuth -pi + (f + 0.5) * 2pi / F (plus beam b's azimuth offset, if any) and beam b
+at elevation `elevations[b]` (descending); its index is f * B + b, which is firing order. It starts at the
+origin, or at `Rays.origin[f]` when the sensor moves during the turn. Each solid is culled to the firings
+inside its azimuth span and the beams inside its elevation span (widened by the offsets and by how far the
+sensor moves), so only those ray/solid pairs are tested (no Python loop over rays or solids).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
+from functools import cached_property
 
 import numpy as np
 
 BOX, CYLINDER = 0, 1
+# a porous solid (foliage) returns from a leaf at a random depth inside it, exponential with this mean (m),
+# as real crowns and hedges give a volume of returns rather than a surface
+VOLUME_DEPTH = 0.4
 
 
 @dataclass(frozen=True)
@@ -41,11 +46,21 @@ class Rays:
 
     azimuth: np.ndarray  # (F,) float64, increasing from -pi
     elevation: np.ndarray  # (B,) float64 radians, descending
+    azimuth_offset: np.ndarray | None = None  # (B,) float64 radians added to each beam's azimuth
+    origin: np.ndarray | None = None  # (F, 3) float64 where each firing starts; None: the origin
 
     @staticmethod
-    def spinning(firings: int, elevations_deg: np.ndarray) -> Rays:
+    def spinning(
+        firings: int,
+        elevations_deg: np.ndarray,
+        azimuth_offset_deg: np.ndarray | None = None,
+        origin: np.ndarray | None = None,
+    ) -> Rays:
         az = -math.pi + (np.arange(firings) + 0.5) * (2 * math.pi / firings)
-        return Rays(az, np.radians(np.asarray(elevations_deg, np.float64)))
+        offset = (
+            None if azimuth_offset_deg is None else np.radians(np.asarray(azimuth_offset_deg, np.float64))
+        )
+        return Rays(az, np.radians(np.asarray(elevations_deg, np.float64)), offset, origin)
 
     @property
     def count(self) -> int:
@@ -54,8 +69,44 @@ class Rays:
     def directions(self, f: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(Q,) firing and beam indices -> unit directions dx, dy, dz, each (Q,) float32."""
         ce, se = np.cos(self.elevation).astype(np.float32), np.sin(self.elevation).astype(np.float32)
-        ca, sa = np.cos(self.azimuth).astype(np.float32), np.sin(self.azimuth).astype(np.float32)
-        return ce[b] * ca[f], ce[b] * sa[f], se[b]
+        if self.azimuth_offset is None:
+            ca, sa = np.cos(self.azimuth).astype(np.float32), np.sin(self.azimuth).astype(np.float32)
+            return ce[b] * ca[f], ce[b] * sa[f], se[b]
+        ray = f * len(self.elevation) + b  # (Q,)
+        return self._horizontal_directions[0][ray], self._horizontal_directions[1][ray], se[b]
+
+    @cached_property
+    def _horizontal_directions(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R,) float32 x, y of every ray's unit direction (with azimuth offsets: one table, not trig per
+        ray/solid pair)."""
+        offset = np.zeros(len(self.elevation)) if self.azimuth_offset is None else self.azimuth_offset
+        az = (self.azimuth[:, None] + offset[None, :]).reshape(-1)  # (R,)
+        ce = np.tile(np.cos(self.elevation), len(self.azimuth))  # (R,)
+        return (ce * np.cos(az)).astype(np.float32), (ce * np.sin(az)).astype(np.float32)
+
+    @cached_property
+    def _starts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        o = np.zeros((len(self.azimuth), 3)) if self.origin is None else self.origin
+        return o[:, 0].astype(np.float32), o[:, 1].astype(np.float32), o[:, 2].astype(np.float32)
+
+    def starts(self, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(Q,) firing indices -> where their rays start: x, y, z (Q,) float32 each (zeros: the origin)."""
+        if self.origin is None:
+            zero = np.zeros(len(f), np.float32)
+            return zero, zero, zero
+        x, y, z = self._starts
+        return x[f], y[f], z[f]
+
+    def reach(self) -> tuple[np.ndarray, float, float, float]:
+        """The culling margins: the middle of the rays' starts (3,), how far they lie from it (horizontal,
+        vertical, metres) and the largest azimuth offset (radians)."""
+        az = 0.0 if self.azimuth_offset is None else float(np.abs(self.azimuth_offset).max(initial=0.0))
+        if self.origin is None:
+            return np.zeros(3), 0.0, 0.0, az
+        o = self.origin
+        mid = (o.min(axis=0) + o.max(axis=0)) / 2  # (3,)
+        d = o - mid
+        return mid, float(np.hypot(d[:, 0], d[:, 1]).max()), float(np.abs(d[:, 2]).max()), az
 
 
 @dataclass(frozen=True)
@@ -103,10 +154,22 @@ def _spans(s: Solids) -> tuple[np.ndarray, ...]:
     return az_lo, az_hi, el_lo, el_hi
 
 
+def _inflated(s: Solids, mid: np.ndarray, grow: float, grow_z: float) -> Solids:
+    """The solids moved by -mid (3,) and grown by `grow` metres sideways and `grow_z` up and down: every ray
+    that starts within that reach of `mid` and hits a solid also passes through its moved, grown copy as seen
+    from the origin."""
+    if grow == 0 and grow_z == 0 and not mid.any():
+        return s
+    z = s.z - mid[2] + np.array([-grow_z, grow_z])
+    return replace(s, centre=s.centre - mid[:2], z=z, half=s.half + grow)
+
+
 def ray_pairs(s: Solids, rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Candidate pairs: (Q,) solid index, firing index, beam index (firings and beams in the solid's span)."""
     firings = len(rays.azimuth)
-    az_lo, az_hi, el_lo, el_hi = _spans(s)
+    mid, grow, grow_z, az_margin = rays.reach()
+    az_lo, az_hi, el_lo, el_hi = _spans(_inflated(s, mid, grow, grow_z))
+    az_lo, az_hi = az_lo - az_margin, az_hi + az_margin
     step = 2 * math.pi / firings
     f0 = np.ceil((az_lo + math.pi) / step - 0.5 - 1e-9).astype(np.int64)  # (P,)
     f1 = np.floor((az_hi + math.pi) / step - 0.5 + 1e-9).astype(np.int64)
@@ -124,10 +187,10 @@ def ray_pairs(s: Solids, rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def _box_walls(
-    s: Solids, solid: np.ndarray, dx: np.ndarray, dy: np.ndarray
+    s: Solids, solid: np.ndarray, cx: np.ndarray, cy: np.ndarray, dx: np.ndarray, dy: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Box pairs: entry, exit (Q,) of each ray through the footprint, |cos| (Q,) against the entry wall."""
-    cx, cy = s.centre[solid, 0].astype(np.float32), s.centre[solid, 1].astype(np.float32)  # (Q,)
+    """Box pairs (centres cx, cy relative to the ray's start): entry, exit (Q,) of each ray through the
+    footprint, |cos| (Q,) against the entry wall."""
     hl, hw = s.half[solid, 0].astype(np.float32), s.half[solid, 1].astype(np.float32)
     c, sn = np.cos(s.yaw[solid]).astype(np.float32), np.sin(s.yaw[solid]).astype(np.float32)
     lx, ly = dx * c + dy * sn, -dx * sn + dy * c  # direction in the box frame
@@ -143,10 +206,10 @@ def _box_walls(
 
 
 def _cylinder_wall(
-    s: Solids, solid: np.ndarray, dx: np.ndarray, dy: np.ndarray
+    s: Solids, solid: np.ndarray, cx: np.ndarray, cy: np.ndarray, dx: np.ndarray, dy: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cylinder pairs: entry, exit (Q,) of each ray through the disc |t d - c| <= r, |cos| (Q,) at entry."""
-    cx, cy = s.centre[solid, 0].astype(np.float32), s.centre[solid, 1].astype(np.float32)  # (Q,)
+    """Cylinder pairs (centres cx, cy relative to the ray's start): entry, exit (Q,) of each ray through the
+    disc |t d - c| <= r, |cos| (Q,) at entry."""
     r = s.half[solid, 0].astype(np.float32)
     a = dx * dx + dy * dy
     b = dx * cx + dy * cy
@@ -160,14 +223,14 @@ def _cylinder_wall(
 
 
 def _horizontal(
-    s: Solids, solid: np.ndarray, dx: np.ndarray, dy: np.ndarray
+    s: Solids, solid: np.ndarray, cx: np.ndarray, cy: np.ndarray, dx: np.ndarray, dy: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Entry, exit (Q,) of each ray through its solid's footprint, and |cos| (Q,) against the entry wall."""
     t_in, t_out, cos = (np.empty(len(solid), np.float32) for _ in range(3))
     box = s.kind[solid] == BOX
     for sel, walls in ((box, _box_walls), (~box, _cylinder_wall)):
         i = np.flatnonzero(sel)
-        t_in[i], t_out[i], cos[i] = walls(s, solid[i], dx[i], dy[i])
+        t_in[i], t_out[i], cos[i] = walls(s, solid[i], cx[i], cy[i], dx[i], dy[i])
     return t_in, t_out, cos
 
 
@@ -175,10 +238,14 @@ def cast_solids(s: Solids, rays: Rays, range_min: float, rng: np.random.Generato
     """The nearest hit of every ray that hits a solid (porous solids let rays through at random)."""
     solid, f, b = ray_pairs(s, rays)
     dx, dy, dz = rays.directions(f, b)  # (Q,) each
-    t_in, t_out, cos = _horizontal(s, solid, dx, dy)
+    ox, oy, oz = rays.starts(f)  # (Q,) each
+    cx = s.centre[solid, 0].astype(np.float32) - ox  # (Q,) solid centres relative to the ray's start
+    cy = s.centre[solid, 1].astype(np.float32) - oy
+    t_in, t_out, cos = _horizontal(s, solid, cx, cy, dx, dy)
     with np.errstate(divide="ignore", invalid="ignore"):
         iz = 1 / np.where(np.abs(dz) < 1e-12, np.float32(1e-12), dz)
-        tz0, tz1 = s.z[solid, 0].astype(np.float32) * iz, s.z[solid, 1].astype(np.float32) * iz
+        tz0 = (s.z[solid, 0].astype(np.float32) - oz) * iz
+        tz1 = (s.z[solid, 1].astype(np.float32) - oz) * iz
     tzn, tzf = np.minimum(tz0, tz1), np.maximum(tz0, tz1)
     cos = np.where(tzn > t_in, np.abs(dz), cos)
     t_in, t_out = np.maximum(t_in, tzn), np.minimum(t_out, tzf)
@@ -186,7 +253,11 @@ def cast_solids(s: Solids, rays: Rays, range_min: float, rng: np.random.Generato
     porous = s.porosity[solid[hit]]
     keep = np.flatnonzero(hit)[rng.random(len(porous)) >= porous]  # (H0,)
     ray = f[keep] * len(rays.elevation) + b[keep]
-    return nearest(ray, t_in[keep], cos[keep], solid[keep], rays.count)
+    t = t_in[keep]
+    inside = np.flatnonzero(s.porosity[solid[keep]] > 0)  # foliage: the leaf a ray meets lies inside
+    depth = rng.exponential(VOLUME_DEPTH, len(inside)).astype(np.float32)
+    t[inside] += np.minimum(depth, t_out[keep][inside] - t[inside])
+    return nearest(ray, t, cos[keep], solid[keep], rays.count)
 
 
 def nearest(ray: np.ndarray, t: np.ndarray, cos: np.ndarray, solid: np.ndarray, n_rays: int) -> Hits:
