@@ -25,6 +25,7 @@ from model.config import PHiMConfig
 from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import LabeledScan, Spin
 from model.layers.head_targets import BEVTargets, TargetConfig, build_targets
+from model.train.gt_sampling import GTSamplingConfig, ObjectBank, build_bank, paste_objects
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,7 @@ class SampleConfig:
     targets: TargetConfig = field(default_factory=TargetConfig)
     random_start: bool = True  # the first sector in time is random (else sector 0)
     clockwise: float = 0.5  # chance that the sectors run clockwise (a sensor spinning the other way round)
+    gt_sampling: GTSamplingConfig | None = field(default_factory=GTSamplingConfig)  # None: no copy-paste
 
 
 @dataclass(frozen=True)
@@ -128,13 +130,32 @@ class SampleStream(IterableDataset):
     """Endless TrainSamples: scan i comes from `scan_at(i)` for i = first, first + stride, ...
 
     `stride` and `first` spread scans over DDP ranks; data-loader workers split them further. The
-    augmentation of scan i is seeded by (seed, i), so a resumed run sees the same samples again.
+    augmentation of scan i is seeded by (seed, i), so a resumed run sees the same samples again. With
+    `cfg.gt_sampling`, scans before index `paste_before` get objects pasted from a bank cut from `bank_at`'s
+    scans (built once per process).
     """
 
-    def __init__(self, scan_at, model_cfg: PHiMConfig, cfg: SampleConfig, seed: int, first: int, stride: int):
+    def __init__(
+        self,
+        scan_at,
+        model_cfg: PHiMConfig,
+        cfg: SampleConfig,
+        seed: int,
+        first: int,
+        stride: int,
+        bank_at=None,
+        paste_before: int = 0,
+    ):
         super().__init__()
         self.scan_at, self.model_cfg, self.cfg = scan_at, model_cfg, cfg
         self.seed, self.first, self.stride = seed, first, stride
+        self.bank_at, self.paste_before = bank_at, paste_before
+
+    def _bank(self) -> ObjectBank | None:
+        gts = self.cfg.gt_sampling
+        if gts is None or self.bank_at is None or self.first >= self.paste_before:
+            return None
+        return build_bank(self.bank_at, gts.bank_scans, gts.min_points)
 
     def __iter__(self) -> Iterator[TrainSample]:
         info = get_worker_info()
@@ -142,7 +163,11 @@ class SampleStream(IterableDataset):
         if info is not None:
             torch.set_num_threads(1)
         i = self.first + wid * self.stride
+        bank = self._bank()
         while True:
             rng = np.random.default_rng([self.seed, i])
-            yield make_sample(self.scan_at(i), self.model_cfg, self.cfg, rng)
+            scan = self.scan_at(i)
+            if bank is not None and self.cfg.gt_sampling is not None and i < self.paste_before:
+                scan = paste_objects(scan, bank, rng, self.cfg.gt_sampling)
+            yield make_sample(scan, self.model_cfg, self.cfg, rng)
             i += nw * self.stride

@@ -105,14 +105,25 @@ def _set_schedule(opt: torch.optim.Optimizer, step: int, cfg: TrainConfig) -> fl
     return lr
 
 
+BANK_STREAM = 1000  # the object bank of ground-truth sampling comes from data stream seed + BANK_STREAM
+
+
 def _loader(cfg: TrainConfig, model: PHiM, dist: Dist, start_step: int) -> torch.utils.data.DataLoader:
+    gts = cfg.sample.gt_sampling
+    scans_per_step = dist.world * cfg.batch_size
+    sample = cfg.sample
+    if gts is not None:  # a short run cuts its bank from no more scans than it trains on
+        bank_scans = min(gts.bank_scans, cfg.steps * scans_per_step)
+        sample = dataclasses.replace(sample, gt_sampling=dataclasses.replace(gts, bank_scans=bank_scans))
     stream = SampleStream(
         scan_source(cfg.data, cfg.seed),
         model.cfg,
-        cfg.sample,
+        sample,
         cfg.seed,
-        first=dist.rank + dist.world * start_step * cfg.batch_size,
+        first=dist.rank + start_step * scans_per_step,
         stride=dist.world,
+        bank_at=scan_source(cfg.data, cfg.seed + BANK_STREAM),  # sim: a stream training never reads
+        paste_before=0 if gts is None else int(cfg.steps * gts.fade) * scans_per_step,
     )
     return torch.utils.data.DataLoader(
         stream,
