@@ -108,6 +108,15 @@ def test_samples_spec_reads_every_labelled_real_scan_in_its_sensor_frame() -> No
         assert -2.4 < ground < -1.5, (name, ground)  # the road ~1.7-2 m below the sensor, every data set
         assert len(scan.gt) > 0 and (scan.gt.num_points > 0).any(), name
         assert scan.spin is (Spin.CW if name.startswith("nuscenes") else Spin.CCW), name
+    for name in ("argoverse_kitti_format/000000", "kitti_object_000008_reduced/000008"):
+        gt, points = scans[name].gt, scans[name].points
+        cars = gt.boxes[(gt.labels == VEHICLE) & (gt.num_points >= 50)]
+        inside = points_in_boxes(points[:, :3], cars)  # (N, M)
+        rel = [np.median((points[inside[:, m], 2] - c[2] + c[5] / 2) / c[5]) for m, c in enumerate(cars)]
+        assert 0.3 < np.median(rel) < 0.75, (
+            name,
+            np.median(rel),
+        )  # boxes sit on their cars (LABEL_Z_IS_CENTRE)
     argo = scans["argoverse_kitti_format/000000"].label_fov
     kitti = scans["kitti_object/000000"].label_fov
     assert argo is not None and math.degrees(argo[1]) > 50  # the labels' span: the calib's camera is not it

@@ -22,9 +22,9 @@ import numpy as np
 
 from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
 from model.data.readers import read_labeled
-from model.data.samples import SENSOR_ORIGINS
+from model.data.samples import LABEL_Z_IS_CENTRE, SENSOR_ORIGINS
 from model.data.sim import SimConfig, simulate
-from model.data.types import LabeledScan
+from model.data.types import GroundTruth, LabeledScan
 
 
 def sim_seed(stream: int, index: int) -> int:
@@ -61,10 +61,20 @@ class FileSource:
         folder = self.paths[k].relative_to(self.root).parts[0]
         origin = SENSOR_ORIGINS.get(folder)
         scan = read_labeled(self.paths[k], origin=None if origin is None else np.array(origin))
+        if folder in LABEL_Z_IS_CENTRE:
+            scan = _lowered(scan)
         return dataclasses.replace(scan, name=f"{folder}/{scan.name}")
 
     def __len__(self) -> int:
         return len(self.paths)
+
+
+def _lowered(scan: LabeledScan) -> LabeledScan:
+    """Labels whose z was read as a bottom centre though it is the box centre: lowered by half their
+    height, points counted again."""
+    boxes = scan.gt.boxes.copy()
+    boxes[:, 2] -= boxes[:, 5] / 2
+    return dataclasses.replace(scan, gt=GroundTruth.from_boxes(boxes, scan.gt.labels, scan.points))
 
 
 def scan_source(spec: str, seed: int, shuffle: bool = True) -> SimSource | FileSource:
