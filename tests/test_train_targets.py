@@ -191,7 +191,7 @@ def test_intensity_is_scaled_per_scan_and_sometimes_constant():
     for seed in range(60):
         p, _ = augment(points, BOXES, np.random.default_rng(seed), cfg)
         np.testing.assert_array_equal(p[:, :3], points[:, :3])
-        assert 0.0 <= p[:, 3].min() and p[:, 3].max() <= 1.0
+        assert p[:, 3].min() >= 0.0 and p[:, 3].max() <= 1.0
         if np.ptp(p[:, 3]) == 0:
             constants += 1
         else:
