@@ -91,7 +91,7 @@ def eval_cmd(
     from model.eval.metrics import count_ground_truths, format_table
     from model.eval.prediction_files import read_predictions_by_fill, write_predictions
     from model.eval.runner import ScanResult, run_eval, run_rescore, score, vehicle_ap, within_range
-    from model.eval.vehicle_check import format_check, vehicle_check
+    from model.eval.vehicle_check import vehicle_check
 
     source = scan_source(data, seed, shuffle=False)
     count = min(scans, len(source))
@@ -130,6 +130,13 @@ def eval_cmd(
         return
     click.echo(f"{what}, data {data}, {count} scans in {time.perf_counter() - t0:.1f} s")
     click.echo(format_table(metrics, count_ground_truths([r.truths[-1] for r in results])))
+    _print_more(metrics)
+
+
+def _print_more(metrics: dict) -> None:
+    """The lines after the AP/APH table: vehicle AP by IoU, the vehicle check, turns, buffer fill."""
+    from model.eval.vehicle_check import format_check
+
     ap = metrics["vehicle_ap_by_iou"]
     click.echo(f"LEVEL_1 VEHICLE AP at 3D IoU 0.7: {ap['0.7']:.4f}, at 0.5: {ap['0.5']:.4f}")
     click.echo(format_check(metrics["vehicle_check"]))
