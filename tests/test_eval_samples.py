@@ -116,7 +116,7 @@ def test_samples_spec_reads_every_labelled_real_scan_in_its_sensor_frame() -> No
         assert 0.3 < np.median(rel) < 0.75, (
             name,
             np.median(rel),
-        )  # boxes sit on their cars (LABEL_Z_IS_CENTRE)
+        )  # boxes sit on their cars (SAMPLE_FRAMES)
     argo = scans["argoverse_kitti_format/000000"].label_fov
     kitti = scans["kitti_object/000000"].label_fov
     assert argo is not None and math.degrees(argo[1]) > 50  # the labels' span: the calib's camera is not it

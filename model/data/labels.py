@@ -117,7 +117,18 @@ def kitti_label_fov(
     return min(azimuths), max(azimuths)
 
 
-def read_kitti_labels(label_path: Path, calib_path: Path) -> LabelBoxes:
+@dataclass(frozen=True)
+class FileFrame:
+    """How a recorded file departs from the conventions its format's reader assumes."""
+
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the sensor's position in the file's frame (m)
+    label_z_is_centre: bool = False  # KITTI label_2: the location is the box centre, not its bottom centre
+
+
+AS_IS = FileFrame()  # a file that keeps its format's conventions
+
+
+def read_kitti_labels(label_path: Path, calib_path: Path, z_is_centre: bool = False) -> LabelBoxes:
     m = velo_from_rect(read_calib(calib_path))
     boxes, names = [], []
     for line in Path(label_path).read_text().splitlines():
@@ -125,7 +136,7 @@ def read_kitti_labels(label_path: Path, calib_path: Path) -> LabelBoxes:
         if len(parts) < 15 or parts[0] in IGNORED:
             continue
         h, w, length, x, y, z, ry = (float(v) for v in parts[8:15])
-        centre = m @ np.array([x, y - h / 2, z, 1.0])
+        centre = m @ np.array([x, y if z_is_centre else y - h / 2, z, 1.0])
         boxes.append([centre[0], centre[1], centre[2], length, w, h, -ry - math.pi / 2])
         names.append(parts[0])
     arr = np.array(boxes, dtype=np.float32).reshape(-1, 7)
@@ -243,14 +254,14 @@ def map_classes(labels: LabelBoxes, table: dict[str, str]) -> tuple[np.ndarray, 
 
 
 def labeled_targets(
-    path: Path, origin: np.ndarray | None = None
+    path: Path, frame: FileFrame = AS_IS
 ) -> tuple[np.ndarray, np.ndarray, tuple[float, float] | None]:
     """The targets of a recorded scan, by its format: boxes (M, 7) float32, labels (M,) int64 index into
     CLASS_NAMES (classes that are not targets dropped) and the azimuth range the labels cover (None: all
-    around). `origin` (3,): where the sensor sits in a file whose frame is not the sensor's (subtracted from
-    the box centres). FileNotFoundError when a KITTI or nuScenes scan has no label files beside it."""
+    around), in the sensor's frame (`frame.origin` subtracted). FileNotFoundError when a KITTI or nuScenes
+    scan has no label files beside it."""
     path = Path(path)
-    shift = np.zeros(3, np.float32) if origin is None else np.asarray(origin, np.float32)
+    shift = np.asarray(frame.origin, np.float32)
     if path.name.endswith(".pcd.bin"):
         boxes_path = nuscenes_boxes_path(path)
         if not boxes_path.is_file():
@@ -267,7 +278,7 @@ def labeled_targets(
     label, calib = kitti_label_paths(path)
     if not (label.is_file() and calib.is_file()):
         raise FileNotFoundError(f"{path}: KITTI labels need {label} and {calib}")
-    labels = _shifted(read_kitti_labels(label, calib), shift)
+    labels = _shifted(read_kitti_labels(label, calib, frame.label_z_is_centre), shift)
     fov = labelled_fov(kitti_label_fov(read_calib(calib)), labels.boxes)
     return (*map_classes(labels, KITTI_CLASSES), fov)
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from contract import POINT_FIELDS, REQUIRED_FIELDS
 from model.config import CLASS_NAMES, PHiMConfig
-from model.data.labels import labeled_targets
+from model.data.labels import AS_IS, FileFrame, labeled_targets
 from model.data.types import GroundTruth, LabeledScan, Spin
 
 SCAN_SUFFIXES = (".bin", ".npz")
@@ -170,21 +170,20 @@ def feature_columns(scan: LabeledScan, point_features: int) -> np.ndarray:
     return np.stack(cols, axis=1).astype(np.float32)
 
 
-def read_labeled(path: Path, sectors: int = DEFAULT_SECTORS, origin: np.ndarray | None = None) -> LabeledScan:
+def read_labeled(path: Path, sectors: int = DEFAULT_SECTORS, frame: FileFrame = AS_IS) -> LabeledScan:
     """A recorded scan with its ground truth: KITTI velodyne .bin (+ ../label_2, ../calib), nuScenes
     .pcd.bin (+ NAME_boxes.txt beside it) or native .npz (ground truth optional: empty without it).
 
-    Points come with x, y, z, intensity first; `sector` is each point's sector of `sectors`. `origin` (3,):
-    the sensor's position in the file's frame, when that is not the sensor's (points and boxes are moved
-    into the sensor's frame).
+    Points come with x, y, z, intensity first; `sector` is each point's sector of `sectors`. `frame`: how the
+    file departs from its format's conventions (points and boxes are moved into the sensor's frame).
     """
     path = Path(path)
     scan = read_scan(path)
     points, fields = model_columns(scan.points, scan.fields)  # (N, C)
-    if origin is not None:
+    if any(frame.origin):
         points = points.copy()
-        points[:, :3] -= np.asarray(origin, np.float32)
-    boxes, labels, label_fov = labeled_targets(path, origin)
+        points[:, :3] -= np.asarray(frame.origin, np.float32)
+    boxes, labels, label_fov = labeled_targets(path, frame)
     gt = GroundTruth.from_boxes(boxes, labels, points)
     sector = sector_of_xy(points[:, 0], points[:, 1], sectors)  # (N,)
     return LabeledScan(scan.name, points, fields, gt, scan.time, sector, label_fov, scan.spin)

@@ -21,10 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
+from model.data.labels import AS_IS
 from model.data.readers import read_labeled
-from model.data.samples import LABEL_Z_IS_CENTRE, SENSOR_ORIGINS
+from model.data.samples import SAMPLE_FRAMES
 from model.data.sim import SimConfig, simulate
-from model.data.types import GroundTruth, LabeledScan
+from model.data.types import LabeledScan
 
 
 def sim_seed(stream: int, index: int) -> int:
@@ -49,7 +50,7 @@ class SimSource:
 class FileSource:
     paths: tuple[Path, ...]
     shuffle_seed: int | None = None  # None: file order
-    root: Path | None = None  # samples: scans named SUBFOLDER/NAME, in the sensor frame (SENSOR_ORIGINS)
+    root: Path | None = None  # samples: scans named SUBFOLDER/NAME, read by SAMPLE_FRAMES
 
     def __call__(self, index: int) -> LabeledScan:
         n = len(self.paths)
@@ -59,22 +60,11 @@ class FileSource:
         if self.root is None:
             return read_labeled(self.paths[k])
         folder = self.paths[k].relative_to(self.root).parts[0]
-        origin = SENSOR_ORIGINS.get(folder)
-        scan = read_labeled(self.paths[k], origin=None if origin is None else np.array(origin))
-        if folder in LABEL_Z_IS_CENTRE:
-            scan = _lowered(scan)
+        scan = read_labeled(self.paths[k], frame=SAMPLE_FRAMES.get(folder, AS_IS))
         return dataclasses.replace(scan, name=f"{folder}/{scan.name}")
 
     def __len__(self) -> int:
         return len(self.paths)
-
-
-def _lowered(scan: LabeledScan) -> LabeledScan:
-    """Labels whose z was read as a bottom centre though it is the box centre: lowered by half their
-    height, points counted again."""
-    boxes = scan.gt.boxes.copy()
-    boxes[:, 2] -= boxes[:, 5] / 2
-    return dataclasses.replace(scan, gt=GroundTruth.from_boxes(boxes, scan.gt.labels, scan.points))
 
 
 def scan_source(spec: str, seed: int, shuffle: bool = True) -> SimSource | FileSource:

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from model.data.labels import labeled_targets
-from model.data.readers import read_scan
-from model.data.samples import SAMPLES_DIR, SENSOR_ORIGINS
+from model.data.labels import AS_IS
+from model.data.readers import read_labeled
+from model.data.samples import SAMPLE_FRAMES, SAMPLES_DIR
 from model.data.sim.sensors import Sensor, sensor_spec
 from model.data.sim.simulate import SimConfig, Source, simulate_sources
 from model.data.types import points_in_boxes
@@ -167,14 +167,14 @@ def real_clouds(which: RealSet, samples: Path = SAMPLES_DIR) -> list[Cloud]:
     paths = sorted((samples / src.folder).glob(src.pattern))
     if not paths:
         raise FileNotFoundError(f"{samples / src.folder}: no {src.pattern} scans (the real LiDAR samples)")
-    origin = SENSOR_ORIGINS.get(src.folder.split("/")[0])
-    shift = np.zeros(3, np.float32) if origin is None else np.asarray(origin, np.float32)
+    frame = SAMPLE_FRAMES.get(src.folder.split("/")[0], AS_IS)
     clouds = []
     for path in paths:
-        points = read_scan(path).points[:, :4].copy()
-        points[:, :3] -= shift
-        boxes, _, fov = labeled_targets(path, None if origin is None else shift)
-        clouds.append(Cloud(points, src.height, boxes, fov, None, which != RealSet.ARGOVERSE))
+        scan = read_labeled(path, frame=frame)
+        points = scan.points[:, :4]
+        clouds.append(
+            Cloud(points, src.height, scan.gt.boxes, scan.label_fov, None, which != RealSet.ARGOVERSE)
+        )
     return clouds
 
 
