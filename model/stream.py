@@ -98,9 +98,10 @@ class StreamingDetector:
         dev = self.device
         points = [p.to(dev, non_blocking=True) for p in points]
         layout = StreamLayout.one_per_item(len(points), dev)
-        zero = self.model.init_states(1)
-        mamba = [zero if self.cfg.resets_history(s.sectors_seen) else s.mamba for s in states]
-        per_block = [MambaState.cat([m[k] for m in mamba]) for k in range(len(zero))]
+        reset = [self.cfg.resets_history(s.sectors_seen) for s in states]
+        zero = self.model.init_states(1) if any(reset) else []  # a turn boundary: the global Mamba restarts
+        mamba = [zero if r else s.mamba for s, r in zip(states, reset, strict=True)]
+        per_block = [MambaState.cat([m[k] for m in mamba]) for k in range(len(self.model.backbone.blocks))]
         with autocast(self.precision, dev):
             enc = self.model.encode(points, layout, per_block)
             scenes = [[*s.buffer, new] for s, new in zip(states, enc.sectors, strict=True)]

@@ -121,7 +121,9 @@ def eval_cmd(
     if predictions is not None:
         write_predictions(predictions, results)
     results = [within_range(r, max_range) for r in results]
-    metrics = score(results) | {"max_range": max_range, "vehicle_ap_by_iou": vehicle_ap(results)}
+    metrics = score(results)
+    by_iou = {"0.7": metrics["LEVEL_1"]["VEHICLE"]["AP"], "0.5": vehicle_ap(results, 0.5)}
+    metrics |= {"max_range": max_range, "vehicle_ap_by_iou": by_iou}
     metrics["vehicle_check"] = vehicle_check(results)
     if by_turn:
         metrics["by_turn"] = by_turn

@@ -122,14 +122,11 @@ def score(results: Sequence[ScanResult], cfg: MetricsConfig | None = None) -> di
     }
 
 
-def vehicle_ap(results: Sequence[ScanResult]) -> dict[str, float]:
-    """LEVEL_1 vehicle AP of the full-turn predictions at 3D IoU 0.7 (Waymo's) and 0.5."""
+def vehicle_ap(results: Sequence[ScanResult], iou: float) -> float:
+    """LEVEL_1 vehicle AP of the full-turn predictions at 3D IoU `iou` (`score` gives Waymo's 0.7)."""
     preds, truths = [r.predictions[-1] for r in results], [r.truths[-1] for r in results]
-    out = {}
-    for iou in (0.7, 0.5):
-        cfg = MetricsConfig(iou_thresholds=(iou, *MetricsConfig().iou_thresholds[1:]))
-        out[str(iou)] = evaluate(preds, truths, cfg)["LEVEL_1"][CLASS_NAMES[0]]["AP"]
-    return out
+    cfg = MetricsConfig(iou_thresholds=(iou, *MetricsConfig().iou_thresholds[1:]))
+    return evaluate(preds, truths, cfg)["LEVEL_1"][CLASS_NAMES[0]]["AP"]
 
 
 def run_eval(
