@@ -251,5 +251,5 @@ def test_open_loop_at_overload_sends_every_sector_on_time_and_each_gets_one_answ
     # on time: all but two within MAX_SEND_LAG_MS (the shared CI machine once stalled this process for 0.6 s,
     # delaying one sector); not waiting for answers is checked by sent_before_previous_answer
     assert sorted(lags)[-3] < MAX_SEND_LAG_MS and max(lags) < STALL_MS, sorted(lags)[-3:]
-    assert step.send_lag_max_ms == pytest.approx(max(lags), abs=1e-3)
+    assert step.send_lag_max_ms == pytest.approx(max(lags), abs=0.01)  # samples are rounded to 1 us
     assert sent_before_previous_answer(samples) > 10
