@@ -13,6 +13,7 @@ from model.config import VFEConfig, paper, tiny
 from model.data.samples import KITTI_000000
 from model.geometry.rulebook import Plane
 from model.geometry.sparse_tensor import SparseTensor, linear_key
+from model.graph.search_cpu import sorted_search
 from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
 from model.graph.sparse_conv import conv_fixed, inverse_table, strided_sites, subm_table
 from model.graph.voxelize import voxelize_fixed
@@ -54,6 +55,24 @@ def test_compact_sorted_dedups_pads_and_flags_overflow() -> None:
     assert out.tolist() == [3, 5]
     assert row.tolist() == [0, 0, 1, 2, 2, 2, 2, 2, 2]
     assert int(count) == 4
+
+
+@pytest.mark.parametrize("n_keys", [0, 1, 40, 3000])
+def test_search_kernel_is_searchsorted(n_keys: int) -> None:
+    """The CPU kernel of the tables' lookups against torch.searchsorted: keys with repeats and SENTINEL
+    padding, queries sorted, shifted (a table's rows), unsorted, below, between, on and past the keys."""
+    g = torch.Generator().manual_seed(n_keys)
+    keys = torch.randint(0, 5 * n_keys + 1, (n_keys,), generator=g).sort().values
+    for padded in (keys, torch.cat((keys, torch.full((9,), SENTINEL)))):
+        shifted = padded.unsqueeze(0) + torch.tensor([[-7], [0], [1], [13]])  # (4, n) nearly sorted rows
+        shifted = torch.where(padded == SENTINEL, SENTINEL, shifted)
+        wild = torch.randint(-20, 5 * n_keys + 20, (3, 257), generator=g)  # unsorted
+        wild[0, ::5] = SENTINEL
+        wild[1, ::7] = SENTINEL + 1  # past every key
+        wild[2, :20] = padded[-1] if len(padded) else 0  # the largest key itself
+        for queries in (shifted, wild, wild.sort(dim=1).values):
+            got = sorted_search(padded, queries.contiguous())
+            assert torch.equal(got, torch.searchsorted(padded, queries)), (n_keys, queries)
 
 
 def test_sites_padding_rows() -> None:

@@ -153,7 +153,8 @@ def test_calibration_headroom_scales_the_ratios(model: PHiM):
 
 
 def test_buckets():
-    assert [row_bucket(n) for n in (1, 256, 257, 385, 1000, 1537)] == [256, 256, 384, 512, 1024, 2048]
+    sizes = [row_bucket(n) for n in (1, 256, 257, 289, 480, 511, 513, 1000, 4283, 30_000)]
+    assert sizes == [256, 256, 288, 320, 480, 512, 576, 1024, 4608, 30_720]
 
 
 def test_empty_sectors_and_a_stream_without_points(model: PHiM):

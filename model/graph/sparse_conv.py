@@ -5,7 +5,8 @@ rulebook docstring). Instead of a rule book of (input, output, offset) pairs, wh
 data, a conv gets a neighbour table of shape (cap_out, K0*K1): entry [o, k] is the input row feeding output
 row o through flat kernel offset k (k = k0 * K1 + k1), or cap_in, the row of an appended zero row, where
 none does. The conv is then one gather and one matmul (`conv_fixed`). Tables are built with
-`torch.searchsorted` on the sorted site keys; padding rows (`Sites.valid` false) read only the zero row.
+`torch.searchsorted` on the sorted site keys (on the CPU its kernel twin, `model.graph.search_cpu`);
+padding rows (`Sites.valid` false) read only the zero row.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from torch import Tensor
 
 from model.geometry.rulebook import Plane, _key_strides, as_kernel, conv_out_shape
 from model.geometry.sparse_tensor import BATCH
+from model.graph.search_cpu import search
 from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
 
 
@@ -38,7 +40,7 @@ def _lookup(
     key = base + (pos[0] * st[a0]).unsqueeze(1) + (pos[1] * st[a1]).unsqueeze(0)  # (K0, K1, n)
     inside = ok[0].unsqueeze(1) & ok[1].unsqueeze(0) & valid  # (K0, K1, n)
     key = torch.where(inside, key, SENTINEL).view(k0 * k1, n)  # (KK, n)
-    row = torch.searchsorted(target.keys, key).clamp_max_(target.cap - 1)  # (KK, n)
+    row = search(target.keys, key).clamp_max_(target.cap - 1)  # (KK, n)
     found = inside.view(k0 * k1, n) & (target.keys[row] == key)  # (KK, n)
     return torch.where(found, row, target.cap).t().contiguous()  # (n, KK)
 
