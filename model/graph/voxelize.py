@@ -12,14 +12,19 @@ import torch
 from torch import Tensor
 
 from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites, scatter_sum
+from model.graph.voxelize_cpu import grid_args, group_sorted, point_keys
 from model.layers.voxelize import PolarVoxelizer
 
 
-def _point_keys(vox: PolarVoxelizer, base: Tensor, real: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """base (P + 5, B * Np) from `_base`, real (B, Np) bool -> voxel key per point (B * Np,) (SENTINEL unless
-    kept), kept per batch item (B,), out of range per batch item (B,)."""
+def _point_keys_torch(vox: PolarVoxelizer, points: Tensor, counts: Tensor) -> tuple[Tensor, ...]:
+    """points (B, Np, C), counts (B,) -> voxel key per point (B * Np,) (SENTINEL unless kept), base rows
+    (P + 5, B * Np) (`PolarVoxelizer._base`, `_bin`), kept (B,), out of range (B,) per batch item."""
+    n_b, n_pts, n_c = points.shape
     n_r, n_t, n_z = vox.spatial_shape
-    n_b, n_pts = real.shape
+    dtype = vox.layers[0].linear.weight.dtype
+    real = torch.arange(n_pts, device=points.device).unsqueeze(0) < counts.unsqueeze(1)  # (B, Np)
+    clean = torch.where(real.unsqueeze(2), points, 0.0)  # padding rows may hold anything
+    base = vox._base([clean.reshape(n_b * n_pts, n_c)], points.device, dtype)  # (P + 5, B * Np)
     ri, ti, zi, in_range = vox._bin(base)  # (B * Np,) each
     batch = torch.arange(n_b, device=base.device).unsqueeze(1).expand(n_b, n_pts).reshape(-1)  # (B * Np,)
     real = real.reshape(-1)
@@ -28,7 +33,18 @@ def _point_keys(vox: PolarVoxelizer, base: Tensor, real: Tensor) -> tuple[Tensor
     key = torch.where(kept, key, SENTINEL)
     n_kept = kept.view(n_b, n_pts).sum(dim=1)  # (B,)
     n_out = (real & ~in_range).view(n_b, n_pts).sum(dim=1)  # (B,)
-    return key, n_kept, n_out
+    return key, base, n_kept, n_out
+
+
+def _group_torch(
+    vox: PolarVoxelizer, sorted_key: Tensor, order: Tensor, base: Tensor, cap: int
+) -> tuple[Tensor, ...]:
+    """Sorted keys (n,), their order (n,) and base rows -> keys (cap,), voxel row per point (n,) (cap if
+    none), count () of distinct real keys, VFE input (P + 9, n) (`PolarVoxelizer._features`)."""
+    keys, vid, count = compact_sorted(sorted_key, cap)  # (cap,), (n,) in [0, cap], ()
+    ones = torch.ones_like(sorted_key, dtype=base.dtype)
+    npts = scatter_sum(torch.zeros(cap + 1, dtype=base.dtype, device=base.device), vid, ones)  # (cap + 1,)
+    return keys, vid, count, vox._features(base, order, vid, npts.clamp_min(1.0))
 
 
 @torch.no_grad()
@@ -39,22 +55,22 @@ def voxelize_fixed(
     (Sites of cap rows, features (cap, out_channels), points kept (B,), points out of range (B,)).
 
     Equals `vox.forward([points[b, :counts[b]] for b])` in eval mode on the real rows when cap >= the voxel
-    count; padding rows of the features are zero. Needs `vox` in eval mode (the folded VFE).
+    count; padding rows of the features are zero. Needs `vox` in eval mode (the folded VFE). A float32
+    model on the CPU runs the per-point work through the kernels of `model.graph.voxelize_cpu`.
     """
     if vox.training:
         raise ValueError("voxelize_fixed runs the eval-mode VFE: call vox.eval() first")
-    n_b, n_pts, n_c = points.shape
-    dtype = vox.layers[0].linear.weight.dtype
-    real = torch.arange(n_pts, device=points.device).unsqueeze(0) < counts.unsqueeze(1)  # (B, Np)
-    clean = torch.where(real.unsqueeze(2), points, 0.0)  # padding rows may hold anything
-    base = vox._base([clean.reshape(n_b * n_pts, n_c)], points.device, dtype)  # (P + 5, B * Np)
-    key, n_kept, n_out = _point_keys(vox, base, real)
+    kernels = points.device.type == "cpu" and vox.layers[0].linear.weight.dtype == torch.float32
+    if kernels:
+        key, base, n_kept, n_out = point_keys(points, counts, vox.point_features, *grid_args(vox))
+    else:
+        key, base, n_kept, n_out = _point_keys_torch(vox, points, counts)
     sorted_key, order = torch.sort(key, stable=True)  # (B * Np,)
-    keys, vid, count = compact_sorted(sorted_key, cap)  # (cap,), (B * Np,) in [0, cap], ()
-    ones = torch.ones_like(sorted_key, dtype=dtype)
-    npts = scatter_sum(torch.zeros(cap + 1, dtype=dtype, device=points.device), vid, ones)  # (cap + 1,)
-    feats = vox._features(base, order, vid, npts.clamp_min(1.0))  # (P + 9, B * Np)
+    if kernels:
+        keys, vid, count, feats = group_sorted(sorted_key, order, base, cap)
+    else:
+        keys, vid, count, feats = _group_torch(vox, sorted_key, order, base, cap)
     out = vox._encode(feats, vid, cap + 1)[:cap]  # (cap, out_channels)
-    sites = make_sites(keys, vox.spatial_shape, n_b, count)
+    sites = make_sites(keys, vox.spatial_shape, points.shape[0], count)
     out = torch.where(sites.valid.unsqueeze(1), out, 0.0)
     return sites, out, n_kept, n_out
