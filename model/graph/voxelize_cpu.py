@@ -8,7 +8,7 @@ the 2-core machine). Here:
   (raw columns, r, the three centre offsets, theta; `PolarVoxelizer._base` and `_bin`) and the points kept
   and out of range per stream, in one pass;
 - `group_sorted`: the keys sorted (torch.sort stays outside: it is fast) -> the compacted voxel keys, each
-  point's voxel row, the points per voxel and the VFE input rows (`PolarVoxelizer._features`), in two.
+  point's voxel row and the VFE input rows (`PolarVoxelizer._features`), in two passes.
 
 Arithmetic is float32 step by step as in the eager voxelizer, and hypot and atan2 are aten's (called in
 the op, out of inductor's reach: its code calls the C library's), so voxel indices agree exactly; sums run
@@ -126,17 +126,9 @@ def point_keys(
     # the last bit for half the points of a KITTI sector, and that moves one of them to the next theta bin
     arrays = (points.float().contiguous(), counts.contiguous(), torch.hypot(x, y), torch.atan2(y, x))
     grid_a, shape_a = np.asarray(grid, dtype=np.float64), np.asarray(shape, dtype=np.int64)
-    _point_keys(
-        *(a.numpy() for a in arrays),
-        n_p,
-        grid_a,
-        shape_a,
-        key.numpy(),
-        base.numpy(),
-        kept.numpy(),
-        out.numpy(),
-    )
-    return key, base, kept, out
+    outs = (key, base, kept, out)
+    _point_keys(*(a.numpy() for a in arrays), n_p, grid_a, shape_a, *(o.numpy() for o in outs))
+    return outs
 
 
 @point_keys.register_fake
