@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # Reproduces the shipped default model from scratch: trains `tiny` on the simulator (3,900 steps on sim
-# stream 0), fine-tunes it six times (2,600 steps on stream 1, 3,000 on stream 2, 6,000 on stream 4, 4,000
-# on stream 5, 2,500 on stream 8, 1,600 on stream 9; lower peak learning rate, half that in the last,
-# direction loss weight 1), evaluates the result on the 200 held-out simulated scans (stream 7) and copies
-# it to model/weights/tiny-sim.pt.
+# stream 0), fine-tunes it seven times (2,600 steps on stream 1, 3,000 on stream 2, 6,000 on stream 4, 4,000
+# on stream 5, 2,500 on stream 8, 1,600 on stream 9, 2,500 on stream 12; lower peak learning rate, half that
+# in the last two, direction loss weight 1), evaluates the result on the 200 held-out simulated scans
+# (stream 7) and copies it to model/weights/tiny-sim.pt.
 # Usage: bash scripts/train_default.sh [RUN_DIR]   (default runs/default; an interrupted phase resumes;
-# the fine-tunes go to RUN_DIR/finetune, RUN_DIR/finetune2, ... RUN_DIR/finetune6)
+# the fine-tunes go to RUN_DIR/finetune, RUN_DIR/finetune2, ... RUN_DIR/finetune7)
 # Environment: STEPS (3900), FT_STEPS (2600), FT2_STEPS (3000), FT3_STEPS (6000), FT4_STEPS (4000),
-# FT5_STEPS (2500), FT6_STEPS (1600), BATCH (2 scans per step), LR (2e-3), FT_LR (1e-3), DEVICE (auto),
-# WORKERS (1), THREADS (0 = torch default).
+# FT5_STEPS (2500), FT6_STEPS (1600), FT7_STEPS (2500), BATCH (2 scans per step), LR (2e-3), FT_LR (1e-3),
+# DEVICE (auto), WORKERS (1), THREADS (0 = torch default).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -34,7 +34,8 @@ phase "$RUN/finetune3" 4 "${FT3_STEPS:-6000}" "${FT_LR:-1e-3}" "${tune[@]}" --in
 phase "$RUN/finetune4" 5 "${FT4_STEPS:-4000}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune3/model.pt"
 phase "$RUN/finetune5" 8 "${FT5_STEPS:-2500}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune4/model.pt"
 phase "$RUN/finetune6" 9 "${FT6_STEPS:-1600}" 5e-4 "${tune[@]}" --init "$RUN/finetune5/model.pt"
-LAST="$RUN/finetune6"
+phase "$RUN/finetune7" 12 "${FT7_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune6/model.pt"
+LAST="$RUN/finetune7"
 "$PHIM" eval --checkpoint "$LAST/model.pt" --data sim --scans 200 --seed 7 --json \
   --predictions "$LAST/predictions-sim-seed7.npz" | tee "$LAST/eval-sim-seed7.json"
 mkdir -p model/weights
