@@ -7,6 +7,7 @@ File layout (torch.save of plain data, loadable with weights_only=True, never ar
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -107,6 +108,28 @@ def load_checkpoint(
             f"missing {result.missing_keys[:5]}, unexpected {result.unexpected_keys[:5]}"
         )
     return model.to(device)
+
+
+# the first VFE layer's weight (hidden, P + 9): the P raw point columns come first (model/layers/voxelize.py)
+VFE_INPUT = "voxelizer.layers.0.linear.weight"
+
+
+def init_weights(path: str | Path, cfg: PHiMConfig) -> dict[str, torch.Tensor]:
+    """The weights of checkpoint `path` as the start of a model of config `cfg`. The checkpoint's config must
+    be cfg's, but for reading more point columns (`vfe.point_features`): the weights of the columns cfg does
+    not read are left out, so the new model starts as the old one with those columns zero."""
+    model = load_checkpoint(path)
+    have, want = model.cfg.vfe.point_features, cfg.vfe.point_features
+    expected = dataclasses.replace(cfg, vfe=dataclasses.replace(cfg.vfe, point_features=have))
+    diff = config_diff(plain_config(model.cfg), plain_config(expected))
+    if want > have:
+        diff.append(f"vfe.point_features: checkpoint has {have}, expected at least {want}")
+    if diff:
+        raise CheckpointError(f"checkpoint {path}: config mismatch: " + "; ".join(diff))
+    state = model.state_dict()
+    w = state[VFE_INPUT]  # (hidden, have + 9)
+    state[VFE_INPUT] = torch.cat([w[:, :want], w[:, have:]], 1)  # (hidden, want + 9)
+    return state
 
 
 def checkpoint_path(name: str | Path) -> Path:

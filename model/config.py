@@ -251,14 +251,16 @@ def paper() -> PHiMConfig:
 
 def tiny() -> PHiMConfig:
     """Same architecture, sized for real time on a 2-core CPU: a light Mamba (d_state 4, expand 1, one decay
-    per channel: `shared_decay`) and the axis + direction yaw code. (Until 2026-11-23 `tiny` had d_state 8,
-    expand 2, a decay per state and the sin/cos yaw code; docs/history/model-card.md.)"""
+    per channel: `shared_decay`) and the axis + direction yaw code; it reads x, y, z, no intensity (learnt on
+    the simulator, intensity did not carry over to real sensors: docs/model.md). (Until 2026-11-23 `tiny` had
+    d_state 8, expand 2, a decay per state and the sin/cos yaw code; until 2026-11-25 it read intensity;
+    docs/history/model-card.md.)"""
     return PHiMConfig(
         name="tiny",
         grid=PolarGridConfig(
             r_bins=128, theta_bins=256, z_bins=16, r_min=1.0, r_max=52.2, z_min=-3.0, z_max=3.0
         ),
-        vfe=VFEConfig(point_features=4, hidden=(32,)),
+        vfe=VFEConfig(point_features=3, hidden=(32,)),
         backbone=BackboneConfig(
             d_model=32,
             down_strides=(1, 2),

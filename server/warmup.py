@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from contract import POINT_FIELDS
+from contract import POINT_FIELDS, REQUIRED_FIELDS
 from model.data.synthetic import synthetic_turn
 from model.graph.buckets import BATCH_BUCKETS, batch_bucket
 from model.graph.engine import Detector, GraphStreamingDetector
@@ -90,7 +90,9 @@ def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
         "classes": list(cfg.head.class_names),
         "sectors_per_turn": cfg.sectors_per_turn,
         "buffer_sectors": cfg.buffer_sectors,
-        "point_fields": list(POINT_FIELDS[: cfg.vfe.point_features]),
+        # the columns a sector carries (at least the wire's four), and those the model reads (3: no intensity)
+        "point_fields": list(POINT_FIELDS[: max(cfg.vfe.point_features, len(REQUIRED_FIELDS))]),
+        "fields_read": list(POINT_FIELDS[: cfg.vfe.point_features]),
         "worker_id": worker_id,
         "config_detail": json.loads(json.dumps(cfg.to_dict())),
     }

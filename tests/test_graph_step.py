@@ -11,7 +11,7 @@ import torch
 from conftest import kitti_scan
 from test_streaming import assert_same_detections, make_model
 
-from model.config import MambaHistory, paper
+from model.config import MambaHistory, paper, tiny
 from model.data.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.graph.buckets import CapacityPlanner, row_bucket
@@ -162,6 +162,14 @@ def test_empty_sectors_and_a_stream_without_points(model: PHiM):
     empty = torch.zeros(0, 4)
     graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
     run_both(graph, eager, [[empty, sectors[0]], [sectors[1], empty], [sectors[2], sectors[3]]])
+
+
+def test_a_model_reading_intensity_equals_eager():
+    """`tiny` reading intensity (`vfe.point_features` 4; `tiny` reads x, y, z) through the CPU kernels."""
+    cfg = tiny()
+    model = make_model(dataclasses.replace(cfg, vfe=dataclasses.replace(cfg.vfe, point_features=4)))
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=3)), model.cfg.sectors_per_turn)
+    run_both(GraphStreamingDetector(model), StreamingDetector(model), [[s] for s in sectors])
 
 
 def test_paper_config_equals_eager():

@@ -110,6 +110,7 @@ def test_info_endpoints(server):
     model = httpx.get(f"{server.url}/v1/model").json()
     assert model["config"] == "tiny" and model["classes"] == ["VEHICLE", "PEDESTRIAN", "CYCLIST"]
     assert model["sectors_per_turn"] == 4 and model["point_fields"] == ["x", "y", "z", "intensity"]
+    assert model["fields_read"] == model["point_fields"][: model["config_detail"]["vfe"]["point_features"]]
     assert httpx.get(f"{server.url}/health/live").json()["status"] == "live"
     assert httpx.get(f"{server.url}/health/ready").json() == {"status": "ready", "worker_id": "test-worker"}
     assert "phim_batch_sectors_bucket" in httpx.get(f"{server.url}/metrics").text

@@ -9,7 +9,7 @@ import pytest
 import torch
 from conftest import kitti_scan
 
-from model.config import MambaHistory, ScanImpl, tiny
+from model.config import MambaHistory, PHiMConfig, ScanImpl, tiny
 from model.data.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.fold_bn import fold_batchnorms
@@ -21,10 +21,11 @@ from model.sectors import split_turn
 from model.stream import StreamingDetector
 
 
-def make_model() -> PHiM:
-    """Random weights, but with a heatmap that has clear peaks, so that only a few hundred boxes pass the
-    score threshold and the pre/post-NMS top-k never cut between near-ties (float noise would pick there)."""
-    cfg = tiny()
+def make_model(cfg: PHiMConfig | None = None) -> PHiM:
+    """Random weights (of `cfg`, default tiny), but with a heatmap that has clear peaks, so that only a few
+    hundred boxes pass the score threshold and the pre/post-NMS top-k never cut between near-ties (float
+    noise would pick there)."""
+    cfg = cfg or tiny()
     cfg = dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, score_threshold=0.45))
     torch.manual_seed(1)
     model = PHiM(cfg)

@@ -89,6 +89,26 @@ def test_init_starts_from_a_checkpoints_weights(tmp_path: Path):
         train(replace(cfg, init=str(tmp_path / "other.pt")), tmp_path / "run2", device="cpu", progress=False)
 
 
+def test_a_run_without_intensity_starts_from_a_model_that_read_it(tmp_path: Path):
+    """`tiny` (it reads x, y, z) with --init of a model that read intensity: the first VFE layer keeps every
+    weight but the intensity column's, and the trained model evaluates on 4-column scans."""
+    torch.manual_seed(3)
+    cfg4 = dataclasses.replace(tiny(), vfe=dataclasses.replace(tiny().vfe, point_features=4))
+    save_checkpoint(tmp_path / "start.pt", start := PHiM(cfg4))
+    init = str(tmp_path / "start.pt")
+    cfg = TrainConfig(steps=1, lr=1e-9, workers=0, log_every=1, init=init)
+    trained = load_checkpoint(train(cfg, tmp_path / "run", device="cpu", progress=False))
+    assert trained.cfg.vfe.point_features == 3
+    w0, w1 = start.voxelizer.layers[0].linear.weight, trained.voxelizer.layers[0].linear.weight
+    assert w0.shape[1] == w1.shape[1] + 1
+    torch.testing.assert_close(w1, torch.cat([w0[:, :3], w0[:, 4:]], 1), rtol=0, atol=1e-6)
+    r = predict_scan(trained, SimSource(7)(0))
+    assert len(r.predictions) == trained.cfg.sectors_per_turn
+    with pytest.raises(ValueError, match=r"point_features: 2; expected 0 or 3\.\.5"):
+        replace(cfg, point_features=2)
+    assert replace(cfg, point_features=4).model_config() == cfg4
+
+
 def test_one_cycle_schedule_equals_torchs_one_cycle_lr():
     cfg = TrainConfig(steps=50, lr=2e-3)
     p = torch.nn.Parameter(torch.zeros(1))

@@ -161,8 +161,9 @@ def model_columns(points: np.ndarray, fields: tuple[str, ...]) -> tuple[np.ndarr
 
 
 def feature_columns(scan: LabeledScan, point_features: int) -> np.ndarray:
-    """The scan's points as the model's columns x, y, z, intensity[, elongation] -> (N, point_features)."""
-    names = POINT_FIELDS[:point_features]
+    """The scan's points as the model's columns x, y, z, intensity[, elongation] -> (N, max(point_features,
+    4)): the four columns every sector carries at least (a model reading 3 leaves out the intensity)."""
+    names = POINT_FIELDS[: max(point_features, len(REQUIRED_FIELDS))]
     cols = [
         scan.points[:, scan.fields.index(n)] if n in scan.fields else np.zeros(len(scan.points), np.float32)
         for n in names

@@ -46,6 +46,13 @@ def _int(name: str, default: int, minimum: int, help_text: str):
     show_default=True,
     help="Weight of the direction classifier's loss (axis_direction heading code).",
 )
+@click.option(
+    "--point-features",
+    type=click.IntRange(3, 5),
+    default=None,
+    help="Point columns the model reads (x, y, z, intensity, elongation); 3 drops intensity. Default: the "
+    "config's own (an --init checkpoint reading more starts without those columns' weights).",
+)
 @device_option()
 @threads_option
 @click.option("--progress/--no-progress", default=True, show_default=True, help="Show a progress bar.")
@@ -71,6 +78,7 @@ def train_cmd(
     resume: bool,
     init: str,
     direction_weight: float,
+    point_features: int | None,
     device: str,
     threads: int,
     progress: bool,
@@ -99,6 +107,7 @@ def train_cmd(
             log_every=log_every,
             init=str(checkpoint_path(init)) if init else "",
             loss=LossConfig(direction_weight=direction_weight),
+            point_features=point_features or 0,
         )
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--data") from None

@@ -25,8 +25,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from model.checkpoint import load_checkpoint, save_checkpoint
-from model.config import get_config
+from model.checkpoint import init_weights, save_checkpoint
+from model.config import POINT_FIELDS, PHiMConfig, get_config
 from model.data.datasets import DataKind, parse_data_spec
 from model.data.sources import scan_source
 from model.detector import PHiM
@@ -55,18 +55,30 @@ class TrainConfig:
     seed: int = 0  # the simulator's scan stream and the augmentation (evaluation uses seed 7)
     workers: int = 1  # data-loader processes per training process
     amp: bool = True  # bf16 autocast on CUDA (CPU runs in float32)
-    init: str = ""  # a checkpoint whose weights start the run (its config must be `config`); "" = fresh init
+    init: str = ""  # a checkpoint whose weights start the run (its config must be the run's); "" = fresh init
+    # point columns the model reads (x, y, z, intensity[, elongation]); 0: the config's own. 3 drops intensity
+    # (docs/model.md); an `init` checkpoint reading more columns starts with their weights left out
+    point_features: int = 0
     checkpoint_every: int = 200
     log_every: int = 10
     sample: SampleConfig = field(default_factory=SampleConfig)
     loss: LossConfig = field(default_factory=LossConfig)
 
     def __post_init__(self) -> None:
+        if self.point_features and not 3 <= self.point_features <= len(POINT_FIELDS):
+            raise ValueError(f"point_features: {self.point_features}; expected 0 or 3..{len(POINT_FIELDS)}")
         if parse_data_spec(self.data).kind is DataKind.SAMPLES:
             raise ValueError(
                 f"data {self.data!r}: the real samples' licences allow evaluation only; train on sim or on "
                 "data you may train on (kitti:DIR, nuscenes:DIR, native:DIR)"
             )
+
+    def model_config(self) -> PHiMConfig:
+        """The model config the run trains: `config`, reading `point_features` columns when set."""
+        cfg = get_config(self.config)
+        if not self.point_features:
+            return cfg
+        return dataclasses.replace(cfg, vfe=dataclasses.replace(cfg.vfe, point_features=self.point_features))
 
 
 def _plain(cfg: TrainConfig) -> dict[str, Any]:
@@ -212,10 +224,9 @@ def train(
     config, so each resumed call may have its own."""
     dist = Dist.from_env(device)
     torch.manual_seed(cfg.seed + dist.rank)
-    model = PHiM(get_config(cfg.config)).to(dist.device).train()
+    model = PHiM(cfg.model_config()).to(dist.device).train()
     if cfg.init and not resume:  # a resumed run has its own weights
-        start_from = load_checkpoint(cfg.init, expected=get_config(cfg.config))
-        model.load_state_dict(start_from.state_dict())
+        model.load_state_dict(init_weights(cfg.init, model.cfg))
         log.info("starting from the weights of %s", cfg.init)
     step_fn: nn.Module = dist.wrap(TrainStep(model, cfg.loss))
     opt = make_optimizer(model, cfg.lr, cfg.weight_decay)
