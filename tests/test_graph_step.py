@@ -104,7 +104,7 @@ def test_sectors_up_to_sector_points_share_one_bucket_and_padding_changes_nothin
 
 
 def test_sites_that_do_not_fit_run_again_never_truncated(model: PHiM):
-    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=3)), model.cfg.sectors_per_turn)
     graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
     graph.planner = CapacityPlanner(graph.planner.num_keys, [0.001] * (1 + 2 * graph.planner.num_keys))
     run_both(graph, eager, [[s] for s in sectors])
@@ -114,7 +114,7 @@ def test_sites_that_do_not_fit_run_again_never_truncated(model: PHiM):
 def test_frozen_capacities_run_op_by_op_when_sites_do_not_fit(model: PHiM):
     """A compiled detector's capacities are frozen after calibration (no new graph while serving): a step
     that does not fit them runs op by op at capacities that hold it, equal to eager, and learns nothing."""
-    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=3)), model.cfg.sectors_per_turn)
     graph, eager = GraphStreamingDetector(model, compile=True), StreamingDetector(model)
     graph.calibrate(sectors[:1], headroom=1.5)
     assert graph.planner.frozen
@@ -129,7 +129,7 @@ def test_frozen_capacities_run_op_by_op_when_sites_do_not_fit(model: PHiM):
 def test_a_sealed_detector_runs_buckets_it_did_not_compile_op_by_op(model: PHiM):
     """After `seal` (a server's warm-up) a bucket the compiled step has not run goes op by op: nothing
     compiles on the request path. Results stay equal to eager either way."""
-    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=3)), model.cfg.sectors_per_turn)
     graph, eager = GraphStreamingDetector(model, compile=True), StreamingDetector(model)
     graph.calibrate(sectors)
     calls: list[int] = []
@@ -143,7 +143,7 @@ def test_a_sealed_detector_runs_buckets_it_did_not_compile_op_by_op(model: PHiM)
 
 
 def test_calibration_headroom_scales_the_ratios(model: PHiM):
-    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)), model.cfg.sectors_per_turn)
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=3)), model.cfg.sectors_per_turn)
     a, b = GraphStreamingDetector(model), GraphStreamingDetector(model)
     a.calibrate(sectors[:2])
     b.calibrate(sectors[:2], headroom=2.0)

@@ -141,7 +141,7 @@ def test_reset_starts_fresh(model: PHiM):
 
 
 def test_set_scan_changes_how_not_what(model: PHiM):
-    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=5)[::4]), model.cfg.sectors_per_turn)[:2]
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=8)[::4]), model.cfg.sectors_per_turn)[:2]
     chunked, _ = stream(StreamingDetector(model), sectors)
     ref_model = copy.deepcopy(model)
     ref_model.set_scan(ScanImpl.REFERENCE)
