@@ -7,7 +7,6 @@ File layout (torch.save of plain data, loadable with weights_only=True, never ar
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -120,7 +119,7 @@ def init_weights(path: str | Path, cfg: PHiMConfig) -> dict[str, torch.Tensor]:
     not read are left out, so the new model starts as the old one with those columns zero."""
     model = load_checkpoint(path)
     have, want = model.cfg.vfe.point_features, cfg.vfe.point_features
-    expected = dataclasses.replace(cfg, vfe=dataclasses.replace(cfg.vfe, point_features=have))
+    expected = cfg.reading(have)
     diff = config_diff(plain_config(model.cfg), plain_config(expected))
     if want > have:
         diff.append(f"vfe.point_features: checkpoint has {have}, expected at least {want}")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 CLASS_NAMES: tuple[str, ...] = ("VEHICLE", "PEDESTRIAN", "CYCLIST")
 # point columns in the order the model reads them; a config uses the first `vfe.point_features`
@@ -197,6 +197,10 @@ class PHiMConfig:
         state (a turn boundary, under MambaHistory.TURN)."""
         turn_done = sectors_seen > 0 and sectors_seen % self.sectors_per_turn == 0
         return self.history is MambaHistory.TURN and turn_done
+
+    def reading(self, point_features: int) -> PHiMConfig:
+        """This config reading the first `point_features` point columns (3: x, y, z, no intensity)."""
+        return replace(self, vfe=replace(self.vfe, point_features=point_features))
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -86,10 +86,6 @@ def test_bad_files(tmp_path):
         load_checkpoint(other)
 
 
-def _reading(cfg: PHiMConfig, point_features: int) -> PHiMConfig:
-    return dataclasses.replace(cfg, vfe=dataclasses.replace(cfg.vfe, point_features=point_features))
-
-
 def test_init_weights_leave_out_the_columns_a_model_does_not_read(tmp_path):
     """A model started from a checkpoint that read intensity, reading x, y, z only, detects as the
     checkpoint's model does with the intensity column zero; any other config difference is refused."""
@@ -100,9 +96,9 @@ def test_init_weights_leave_out_the_columns_a_model_does_not_read(tmp_path):
     from model.sectors import split_turn
     from model.stream import StreamingDetector
 
-    four = make_model(_reading(tiny(), 4))
+    four = make_model(tiny().reading(4))
     save_checkpoint(tmp_path / "four.pt", four)
-    three = PHiM(_reading(four.cfg, 3))
+    three = PHiM(four.cfg.reading(3))
     three.load_state_dict(init_weights(tmp_path / "four.pt", three.cfg))
     turn = torch.from_numpy(synthetic_turn(seed=3))
     assert bool((turn[:, 3] != 0).any())
@@ -119,6 +115,6 @@ def test_init_weights_leave_out_the_columns_a_model_does_not_read(tmp_path):
     assert_same_detections(detections[1], detections[0])
     assert not torch.equal(detections[2].scores, detections[0].scores)  # the intensity mattered to `four`
     with pytest.raises(CheckpointError, match="point_features: checkpoint has 4, expected at least 5"):
-        init_weights(tmp_path / "four.pt", _reading(four.cfg, 5))
+        init_weights(tmp_path / "four.pt", four.cfg.reading(5))
     with pytest.raises(CheckpointError, match="buffer_sectors"):
         init_weights(tmp_path / "four.pt", dataclasses.replace(three.cfg, buffer_sectors=2))

@@ -166,8 +166,7 @@ def test_empty_sectors_and_a_stream_without_points(model: PHiM):
 
 def test_a_model_reading_intensity_equals_eager():
     """`tiny` reading intensity (`vfe.point_features` 4; `tiny` reads x, y, z) through the CPU kernels."""
-    cfg = tiny()
-    model = make_model(dataclasses.replace(cfg, vfe=dataclasses.replace(cfg.vfe, point_features=4)))
+    model = make_model(tiny().reading(4))
     sectors = split_turn(torch.from_numpy(synthetic_turn(seed=3)), model.cfg.sectors_per_turn)
     run_both(GraphStreamingDetector(model), StreamingDetector(model), [[s] for s in sectors])
 

@@ -93,7 +93,7 @@ def test_a_run_without_intensity_starts_from_a_model_that_read_it(tmp_path: Path
     """`tiny` (it reads x, y, z) with --init of a model that read intensity: the first VFE layer keeps every
     weight but the intensity column's, and the trained model evaluates on 4-column scans."""
     torch.manual_seed(3)
-    cfg4 = dataclasses.replace(tiny(), vfe=dataclasses.replace(tiny().vfe, point_features=4))
+    cfg4 = tiny().reading(4)
     save_checkpoint(tmp_path / "start.pt", start := PHiM(cfg4))
     init = str(tmp_path / "start.pt")
     cfg = TrainConfig(steps=1, lr=1e-9, workers=0, log_every=1, init=init)

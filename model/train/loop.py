@@ -76,9 +76,7 @@ class TrainConfig:
     def model_config(self) -> PHiMConfig:
         """The model config the run trains: `config`, reading `point_features` columns when set."""
         cfg = get_config(self.config)
-        if not self.point_features:
-            return cfg
-        return dataclasses.replace(cfg, vfe=dataclasses.replace(cfg.vfe, point_features=self.point_features))
+        return cfg.reading(self.point_features) if self.point_features else cfg
 
 
 def _plain(cfg: TrainConfig) -> dict[str, Any]:
