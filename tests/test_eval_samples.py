@@ -57,19 +57,22 @@ def test_vehicle_check_counts_found_vehicles_and_boxes_on_nothing() -> None:
         box(40, 20),  # on nothing: false
         box(15, 8),  # a vehicle box on the pedestrian: overlaps a labelled object, not false
         box(-20, 3),  # on nothing but below the score: ignored
+        box(19.8, 5.1),  # on the second vehicle below the score: not found, but counted as boxed below it
     ]
-    check = vehicle_check([result("a/1", gt, preds, [0.9, 0.8, 0.7, 0.6, 0.3])])
+    scores = [0.9, 0.8, 0.7, 0.6, 0.3, 0.4]
+    check = vehicle_check([result("a/1", gt, preds, scores)])
     assert check["all"] == {
         "scans": 1,
         "vehicles": 2,
         "found": 1,
         "recall": 0.5,
+        "below_score": 1,
         "false_boxes": 1,
         "false_per_scan": 1.0,
     }
-    scores = [0.9, 0.8, 0.7, 0.6, 0.3]
     lower = vehicle_check([result("a/1", gt, preds, scores)], VehicleCheckConfig(score=0.2))
     assert lower["all"]["false_boxes"] == 2
+    assert (lower["all"]["found"], lower["all"]["below_score"]) == (2, 0)
 
 
 def test_vehicle_check_groups_scans_by_subfolder() -> None:

@@ -7,7 +7,9 @@ labels' field of view and the evaluation range):
   metres, the share that a predicted vehicle overlaps at rotated BEV IoU >= `iou`;
 - false vehicle boxes: predicted vehicles that cover at most `false_overlap` of every labelled object's
   footprint (of any target class): boxes on vegetation, walls, clutter; a loose or duplicate box on a
-  labelled object is not counted here (the AP sees it), per scan.
+  labelled object is not counted here (the AP sees it), per scan;
+- below the score: the counted vehicles missed at the operating point that a predicted vehicle of lower
+  score overlaps at the same IoU (boxed, but scored too low: a calibration miss, not a detection miss).
 Scans are grouped by the part of their name before "/" (a samples subfolder: KITTI, Argoverse, nuScenes).
 """
 
@@ -41,12 +43,14 @@ class Tally:
     scans: int = 0
     vehicles: int = 0  # labelled vehicles counted for recall
     found: int = 0
+    below_score: int = 0  # missed at the operating point, boxed at a lower score
     false_boxes: int = 0
 
     def add(self, other: Tally) -> None:
         self.scans += other.scans
         self.vehicles += other.vehicles
         self.found += other.found
+        self.below_score += other.below_score
         self.false_boxes += other.false_boxes
 
     def as_dict(self) -> dict[str, float | int | None]:
@@ -55,6 +59,7 @@ class Tally:
             "vehicles": self.vehicles,
             "found": self.found,
             "recall": self.found / self.vehicles if self.vehicles else None,
+            "below_score": self.below_score,
             "false_boxes": self.false_boxes,
             "false_per_scan": self.false_boxes / self.scans if self.scans else None,
         }
@@ -78,7 +83,9 @@ def _covered(gt: np.ndarray, boxes: np.ndarray, iou: np.ndarray) -> np.ndarray:
 
 def check_scan(r: ScanResult, cfg: VehicleCheckConfig) -> Tally:
     pred, truth = r.predictions[-1], r.truths[-1]
-    boxes = np.asarray(pred.boxes, np.float64)[(pred.labels == VEHICLE) & (pred.scores >= cfg.score)]
+    vehicles = pred.labels == VEHICLE  # (K,)
+    boxes = np.asarray(pred.boxes, np.float64)[vehicles & (pred.scores >= cfg.score)]
+    lower = np.asarray(pred.boxes, np.float64)[vehicles & (pred.scores < cfg.score)]
     gt = np.asarray(truth.boxes, np.float64)  # (M, 7) every labelled target
     wanted = (
         (truth.labels == VEHICLE)
@@ -86,9 +93,10 @@ def check_scan(r: ScanResult, cfg: VehicleCheckConfig) -> Tally:
         & (np.hypot(gt[:, 0], gt[:, 1]) <= cfg.max_range)
     )  # (M,)
     iou = _iou_bev(gt, boxes)  # (M, K)
-    found = int((iou[wanted] >= cfg.iou).any(axis=1).sum())
+    found = (iou >= cfg.iou).any(axis=1) & wanted  # (M,)
+    below = (_iou_bev(gt, lower) >= cfg.iou).any(axis=1) & wanted & ~found  # (M,)
     false = int((_covered(gt, boxes, iou) <= cfg.false_overlap).all(axis=0).sum())
-    return Tally(1, int(wanted.sum()), found, false)
+    return Tally(1, int(wanted.sum()), int(found.sum()), int(below.sum()), false)
 
 
 def vehicle_check(results: Sequence[ScanResult], cfg: VehicleCheckConfig | None = None) -> dict:
@@ -107,14 +115,15 @@ def format_check(check: dict) -> str:
     cfg = check["config"]
     head = (
         f"vehicles with >= {cfg['min_points']} points within {cfg['max_range']:g} m found at BEV IoU "
-        f">= {cfg['iou']:g}, and vehicle boxes on no labelled object, at score >= {cfg['score']:g}:"
+        f">= {cfg['iou']:g}, and vehicle boxes on no labelled object, at score >= {cfg['score']:g} (below: "
+        "missed vehicles that a lower-scored box overlaps):"
     )
     rows = [("all", check["all"]), *check["by_group"].items()]
-    lines = [head, f"{'scans':<30} {'n':>4} {'found':>11} {'recall':>7} {'false/scan':>11}"]
+    lines = [head, f"{'scans':<30} {'n':>4} {'found':>11} {'recall':>7} {'below':>6} {'false/scan':>11}"]
     for name, t in rows:
         recall = "-" if t["recall"] is None else f"{t['recall']:.3f}"
         lines.append(
             f"{name:<30} {t['scans']:>4} {t['found']:>5} / {t['vehicles']:<3} {recall:>7} "
-            f"{t['false_per_scan']:>11.2f}"
+            f"{t['below_score']:>6} {t['false_per_scan']:>11.2f}"
         )
     return "\n".join(lines)
