@@ -28,14 +28,15 @@ phase() {
 }
 
 tune=(--direction-weight 1.0)
-phase "$RUN" 0 "${STEPS:-3900}" "${LR:-2e-3}"
-phase "$RUN/finetune" 1 "${FT_STEPS:-2600}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/model.pt"
-phase "$RUN/finetune2" 2 "${FT2_STEPS:-3000}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune/model.pt"
-phase "$RUN/finetune3" 4 "${FT3_STEPS:-6000}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune2/model.pt"
-phase "$RUN/finetune4" 5 "${FT4_STEPS:-4000}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune3/model.pt"
-phase "$RUN/finetune5" 8 "${FT5_STEPS:-2500}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune4/model.pt"
-phase "$RUN/finetune6" 9 "${FT6_STEPS:-1600}" 5e-4 "${tune[@]}" --init "$RUN/finetune5/model.pt"
-phase "$RUN/finetune7" 12 "${FT7_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune6/model.pt"
+four=(--point-features 4)  # phases 1-8 read intensity too; finetune8 starts without its weights
+phase "$RUN" 0 "${STEPS:-3900}" "${LR:-2e-3}" "${four[@]}"
+phase "$RUN/finetune" 1 "${FT_STEPS:-2600}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/model.pt" "${four[@]}"
+phase "$RUN/finetune2" 2 "${FT2_STEPS:-3000}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune/model.pt" "${four[@]}"
+phase "$RUN/finetune3" 4 "${FT3_STEPS:-6000}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune2/model.pt" "${four[@]}"
+phase "$RUN/finetune4" 5 "${FT4_STEPS:-4000}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune3/model.pt" "${four[@]}"
+phase "$RUN/finetune5" 8 "${FT5_STEPS:-2500}" "${FT_LR:-1e-3}" "${tune[@]}" --init "$RUN/finetune4/model.pt" "${four[@]}"
+phase "$RUN/finetune6" 9 "${FT6_STEPS:-1600}" 5e-4 "${tune[@]}" --init "$RUN/finetune5/model.pt" "${four[@]}"
+phase "$RUN/finetune7" 12 "${FT7_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune6/model.pt" "${four[@]}"
 phase "$RUN/finetune8" 13 "${FT8_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune7/model.pt"
 phase "$RUN/finetune9" 14 "${FT9_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune8/model.pt"
 LAST="$RUN/finetune9"
