@@ -1,56 +1,92 @@
 #!/usr/bin/env bash
-# On a GPU machine whose python3 already holds a CUDA build of torch (plus numpy, msgspec, click, rich, pytest):
-# the CUDA parity tests, then the model benchmarks for the GPU rows of docs/benchmarks.md and the op counts.
-# Needs the KITTI scans 000000/000001 at ../shared/data/kitti_object/velodyne, as the CPU tests do.
-# Usage: bash scripts/gpu_session.sh [OUTDIR]   (JSON results and logs land in OUTDIR, default runs/gpu)
-set -euo pipefail
+# On a GPU machine whose python3 holds a CUDA build of torch and the project's other dependencies
+# (pip install ".[server]" without touching torch): the GPU checks and timings of docs/benchmarks.md, in
+# stages that each fit a 10-minute call, one process at a time (timings taken beside another GPU or compile
+# job are worthless, and a paper compile takes ~1 minute per bucket on 16 host cores).
+# Needs the KITTI scans 000000-000005 at ../shared/data/kitti_object/velodyne (or $PHIM_SAMPLES_DIR).
+# Usage: bash scripts/gpu_session.sh OUTDIR STAGE...   stages, in the order worth running them:
+#   tests    tests/test_cuda.py (parity: kernels, eager, fixed and compiled graph step, bf16)    ~3 min
+#   profile  paper graph step, batch 1, bf16 then fp32: wall time against kernel time, top kernels ~3 min
+#   bench    phim bench model: paper and tiny, eager and graph, batch 1 and 8, bf16               ~8 min
+#   eval     the shipped model's accuracy in fp32 and bf16 on the GPU                              ~2 min
+# Every step has a time limit; OUTDIR/steps.txt says how each ended, and the table comes last.
+set -uo pipefail
 cd "$(dirname "$0")/.."
-out=${1:-runs/gpu}
+out=${1:?usage: gpu_session.sh OUTDIR STAGE...}
+shift
 mkdir -p "$out"
 py=${PYTHON:-python3}
+export PYTHONUNBUFFERED=1
+points=32768 # every KITTI 1/4 sector (26-33k points) pads to one bucket: one compile per run
+
+step() { # NAME SECONDS COMMAND...: stdout to OUTDIR/NAME.out, stderr to NAME.err
+    local name=$1 limit=$2 t0=$SECONDS
+    shift 2
+    timeout "$limit" "$@" >"$out/$name.out" 2>"$out/$name.err"
+    local rc=$?
+    echo "$name rc=$rc $((SECONDS - t0))s" | tee -a "$out/steps.txt"
+}
+bench() { # CONFIG BATCH ENGINE PRECISION SECONDS
+    step "bench_$1_b$2_$3_$4" "$5" "$py" -m phim bench model --config "$1" --batch "$2" --engine "$3" \
+        --precision "$4" --device cuda --turns 10 --sector-points $points --json
+}
+
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
 "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" | tee -a "$out/gpu.txt"
-"$py" -m pytest -q -p no:cacheprovider tests/test_cuda.py 2>&1 | tee "$out/test_cuda.log" ||
-    echo "CUDA TESTS FAILED (benchmarks follow anyway)"
-phim() { "$py" -m phim "$@"; }
-phim model info --config paper --json >"$out/info_paper.json"
-for run in "paper 1 eager" "paper 1 graph" "paper 8 eager" "paper 8 graph" "paper 1 fixed" \
-    "tiny 1 eager" "tiny 1 graph" "tiny 8 eager" "tiny 8 graph" \
-    "paper 1 graph bf16" "paper 8 graph bf16" "tiny 8 graph bf16"; do
-    set -- $run
-    precision=${4:-fp32}
-    phim bench model --config "$1" --batch "$2" --engine "$3" --precision "$precision" --device cuda --turns 20 \
-        --json >"$out/bench_$1_b$2_$3_$precision.json"
+for stage in "$@"; do
+    case $stage in
+    tests)
+        step test_cuda 300 "$py" -m pytest -q -p no:cacheprovider tests/test_cuda.py
+        tail -15 "$out/test_cuda.out"
+        ;;
+    profile)
+        for precision in bf16 fp32; do
+            step "profile_paper_$precision" 180 env PYTHONPATH=. "$py" scripts/profile_step.py --config paper \
+                --device cuda --engine graph --precision $precision --sector-points $points \
+                --json "$out/profile_paper_$precision.json"
+            cat "$out/profile_paper_$precision.out"
+        done
+        ;;
+    bench)
+        bench paper 1 eager fp32 60
+        bench paper 1 graph bf16 150
+        bench paper 8 graph bf16 180
+        bench tiny 1 graph fp32 90
+        bench tiny 8 graph fp32 90
+        bench paper 1 graph fp32 150
+        ;;
+    eval)
+        for precision in fp32 bf16; do
+            step "eval_tiny_$precision" 120 "$py" -m phim eval --checkpoint default --data sim --scans 100 \
+                --device cuda --precision $precision --json
+        done
+        ;;
+    *) echo "unknown stage $stage" >&2 && exit 2 ;;
+    esac
 done
-for precision in fp32 bf16; do  # the shipped model's accuracy in each precision (docs/benchmarks.md)
-    phim eval --checkpoint default --data sim --scans 100 --device cuda --precision "$precision" --json \
-        >"$out/eval_tiny_$precision.json"
-done
-PYTHONPATH=. "$py" scripts/bf16_agreement.py --device cuda --engine graph | tee "$out/bf16_agreement.txt"
-for config in paper tiny; do  # ops, CUDA kernels and host syncs of one step, by model function
-    for engine in eager graph; do
-        phim bench ops --config "$config" --engine "$engine" --device cuda --rows 30 >"$out/ops_${config}_$engine.md"
-    done
-done
-echo
-cat "$out/gpu.txt" "$out/ops_paper_eager.md" "$out/ops_paper_graph.md"
 "$py" - "$out" <<'PY'
 import json, pathlib, sys
 out = pathlib.Path(sys.argv[1])
-info = json.loads((out / "info_paper.json").read_text())
-print("paper: params", info["params"], "gflops", info["gflops"])
-step_gflops = {"paper": 727.2, "tiny": 1.24}  # one streaming step (docs/benchmarks.md, phim model info)
-print("| config | engine | precision | streams | p50 ms | p90 ms | per-sector p50 ms | TFLOP/s | peak MB |")
-print("|---|---|---|---|---|---|---|---|---|")
-for f in sorted(out.glob("bench_*.json")):
-    r = json.loads(f.read_text())
+print(open(out / "gpu.txt").read().strip())
+step_gflops = {"paper": 727.3, "tiny": 1.24}  # one streaming step (docs/benchmarks.md, phim model info)
+rows = []
+for f in sorted(out.glob("bench_*.out")):
+    try:
+        r = json.loads(f.read_text())
+    except ValueError:
+        continue  # the step failed: steps.txt says how
     tflops = step_gflops[r["config"]] * r["batch"] / r["p50_ms"]  # GFLOP per ms = TFLOP/s
-    keys = ("config", "engine", "precision", "batch", "p50_ms", "p90_ms", "per_sector_p50_ms")
-    print("| " + " | ".join(str(r[k]) for k in keys) + f" | {tflops:.1f} | {r['peak_mem_mb']} |")
-print("| eval (tiny, default, 100 sim scans) | L1 AP | L1 APH | L2 AP | L2 APH |")
-print("|---|---|---|---|---|")
-for precision in ("fp32", "bf16"):
-    r = json.loads((out / f"eval_tiny_{precision}.json").read_text())
-    row = [r[lv]["mean"][m] for lv in ("LEVEL_1", "LEVEL_2") for m in ("AP", "APH")]
-    print(f"| {precision} | " + " | ".join(f"{v:.4f}" for v in row) + " |")
+    keys = ("config", "engine", "precision", "batch", "p50_ms", "p90_ms", "peak_mem_mb")
+    rows.append("| " + " | ".join(str(r[k]) for k in keys) + f" | {r['batch'] * 1e3 / r['p50_ms']:.0f} | {tflops:.1f} |")
+if rows:
+    print("| config | engine | precision | streams | p50 ms | p90 ms | peak MB | sectors/s | TFLOP/s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    print("\n".join(rows))
+for f in sorted(out.glob("eval_tiny_*.out")):
+    try:
+        r = json.loads(f.read_text())
+    except ValueError:
+        continue
+    print(f.stem, {lv: {m: round(r[lv]["mean"][m], 4) for m in ("AP", "APH")} for lv in ("LEVEL_1", "LEVEL_2")})
 PY
+cat "$out/steps.txt"

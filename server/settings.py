@@ -79,9 +79,10 @@ class Settings(BaseSettings):
         "compiled with torch.compile; every batch bucket up to max_batch compiles at warm-up).",
     )
     sector_voxels: int = Field(
-        8192,
-        ge=256,
-        description="fixed/graph: voxels a stream buffers per sector (a sector with more fails alone: 422).",
+        0,
+        ge=0,
+        description="fixed/graph: voxels a stream buffers per sector (a sector with more fails alone: 422); "
+        "0: the config's (tiny 8192, paper 24576).",
     )
     sector_points: int = Field(
         49152,
@@ -248,6 +249,13 @@ class Settings(BaseSettings):
             if path is not None and not path.is_file():
                 raise ValueError(f"{path}: no such file")
         return self
+
+    @field_validator("sector_voxels")
+    @classmethod
+    def _sector_voxels_or_the_configs(cls, value: int) -> int:
+        if 0 < value < 256:
+            raise ValueError(f"{value}: give 0 (the config's) or at least 256")
+        return value
 
     @field_validator("auth_tokens")
     @classmethod

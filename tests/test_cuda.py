@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import dataclasses
 import functools
 from pathlib import Path
 
@@ -125,7 +126,8 @@ def test_streaming_equals_whole_turn_on_cuda(models):
     for s_state, ref in zip(state.mamba, enc.states, strict=True):
         torch.testing.assert_close(s_state.ssm, ref.ssm, rtol=1e-4, atol=1e-5)
     assert len(whole[0]) > 0
-    assert_same_detections(results[-1].detections, whole[0])
+    # the GPU's scatter-adds (atomics) sum in any order: scores agree to ~2e-4, not the CPU's 1e-4
+    assert_same_detections(results[-1].detections, whole[0], atol=1e-3)
 
 
 def test_batched_equals_alone_on_cuda(models):
@@ -191,7 +193,45 @@ def test_bf16_graph_step_on_cuda_agrees_with_fp32(compile):
     det = GraphStreamingDetector(model, compile=compile, precision=Precision.BF16)
     det.calibrate(sectors)
     bf16, state = stream(det, sectors)
-    assert all(t.dtype == torch.float32 for t in (*state.conv, *state.ssm, state.feats))
+    st = det.read_state(state)
+    assert all(t.dtype == torch.float32 for t in (*st.conv, *st.ssm, st.feats))
     got = bf16[-1].detections
     assert (got.boxes.dtype, got.scores.dtype) == (torch.float32, torch.float32)
     assert_agree(fp32[-1].detections.to(torch.device("cpu")), got.to(torch.device("cpu")))
+
+
+@pytest.mark.parametrize("compile", [False, True])
+def test_paper_graph_step_on_cuda_equals_eager(compile):
+    """The paper config (strides 1, 2, 4, kernels 3 and 5) on the GPU: the fixed-shape step, op by op and
+    compiled (CUDA graphs), equals the eager detector there on real KITTI sectors, two streams batched."""
+    from test_graph_step import run_both
+
+    from model.config import paper
+    from model.detector import PHiM
+    from model.graph.engine import GraphStreamingDetector
+
+    cfg = paper()
+    cfg = dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, score_threshold=0.3))
+    torch.manual_seed(2)
+    model = PHiM(cfg).eval()
+    with torch.no_grad():
+        model.head.heatmap[-1].weight.mul_(40.0)
+    model = model.to(CUDA)
+    turns = []
+    for i in (0, 1):
+        scan = kitti_scan(i)
+        scan = torch.cat([scan, scan.new_zeros(scan.shape[0], 1)], 1)  # elongation column
+        turns.append([s.cuda() for s in split_turn(scan, cfg.sectors_per_turn)])
+    graph = GraphStreamingDetector(model, compile=compile)
+    graph.calibrate(turns[0])
+    batches = [[turns[0][k], turns[1][k]] for k in range(cfg.sectors_per_turn)]
+    run_both(graph, StreamingDetector(model), batches + batches[:1])
+
+
+def test_triton_segmented_scan_on_cuda_equals_its_twin():
+    """The graph step's segmented-scan kernels compiled for the GPU (test_graph_scan_triton runs them in
+    Triton's interpreter)."""
+    from scan_triton_cases import cases
+    from test_graph_scan_triton import check_cases
+
+    check_cases(cases("cuda"))

@@ -48,13 +48,14 @@ SectorOutcome = SectorResult | SectorRejected
 
 class GraphStreamingDetector:
     """`step(points, states)` as StreamingDetector's, on the fixed-shape step, for at most `slots` streams
-    at once; `compile` runs it through torch.compile(fullgraph=True), one specialisation per (batch,
-    capacity) bucket; the step runs in `precision` (`model.precision`)."""
+    at once, each buffering `sector_voxels` voxel rows per sector (0: the config's); `compile` runs it
+    through torch.compile(fullgraph=True), one specialisation per (batch, capacity) bucket; the step runs
+    in `precision` (`model.precision`)."""
 
     def __init__(
         self,
         model: PHiM,
-        sector_voxels: int = 8192,
+        sector_voxels: int = 0,
         compile: bool = False,
         slots: int = DEFAULT_SLOTS,
         precision: Precision = Precision.FP32,
@@ -65,6 +66,7 @@ class GraphStreamingDetector:
         self.precision = precision
         self.model = self.reference.model
         self.cfg = model.cfg
+        sector_voxels = sector_voxels or model.cfg.sector_voxels  # 0: the config's
         self.step_module = GraphStep(self.model, sector_voxels)
         self.planner = CapacityPlanner(len(self.step_module.keys))
         self.engine = Engine.GRAPH if compile else Engine.FIXED
@@ -316,7 +318,7 @@ class GraphStreamingDetector:
 def streaming_detector(
     model: PHiM,
     engine: Engine,
-    sector_voxels: int = 8192,
+    sector_voxels: int = 0,
     slots: int = DEFAULT_SLOTS,
     precision: Precision = Precision.FP32,
     sector_points: int = 0,

@@ -17,6 +17,7 @@ stream's conv state, both gathered from one extended tensor [x; state columns].
 
 from __future__ import annotations
 
+import logging
 import math
 
 import torch
@@ -27,6 +28,10 @@ from model.graph.scan_cpu import segmented_scan_cpu
 from model.graph.segments import Segments
 from model.layers.mamba import Mamba, MambaState
 from model.ops.scan_torch import compute_dtype
+from model.ops.triton_support import triton_available
+
+log = logging.getLogger(__name__)
+_announced: set[bool] = set()  # the CUDA scan paths logged so far
 
 
 def _chunk_states(E: Tensor, dBu: Tensor, inplace: bool) -> tuple[Tensor, Tensor]:
@@ -128,7 +133,8 @@ def segmented_scan_op(
 ) -> tuple[Tensor, Tensor]:
     """`segmented_scan` as a torch custom op: torch.compile calls it as one opaque op (inductor's CPU code
     for the unrolled chunk loop recomputes the chain and runs 3-4x slower than these aten ops). On CPU it
-    runs the numba kernel (`model.graph.scan_cpu`), elsewhere `segmented_scan`, its reference twin.
+    runs the numba kernel (`model.graph.scan_cpu`), on CUDA the Triton kernels (`model.graph.scan_triton`)
+    where triton is installed, elsewhere `segmented_scan`, their reference twin.
     Returns (y (T, D), final states (S, D, N), or (0,) without h0)."""
     y, final = segmented_scan(u, delta, A, B, C, Segments(start, valid, seg, last), h0, chunk_size)
     return y.contiguous(), final.contiguous() if final is not None else u.new_zeros(0)
@@ -138,6 +144,21 @@ def segmented_scan_op(
 def _(u, delta, A, B, C, start, valid, seg, last, h0, chunk_size):
     y, final = segmented_scan_cpu(u, delta, A, B, C, Segments(start, valid, seg, last), h0)
     return y, final if final is not None else u.new_zeros(0)
+
+
+@segmented_scan_op.register_kernel("cuda")
+def _(u, delta, A, B, C, start, valid, seg, last, h0, chunk_size):
+    fast = triton_available(u.device) and compute_dtype(u, delta, A, B, C) == torch.float32
+    if fast not in _announced:
+        _announced.add(fast)
+        log.info("graph step's segmented scan on %s: %s", u.device, "triton" if fast else "torch (reference)")
+    if not fast:  # float64 (tests), or no triton: the torch twin
+        y, final = segmented_scan(u, delta, A, B, C, Segments(start, valid, seg, last), h0, chunk_size)
+    else:
+        from model.graph.scan_triton import segmented_scan_triton
+
+        y, final = segmented_scan_triton(u, delta, A, B, C, start, valid, seg, last, h0)
+    return y.contiguous(), final.contiguous() if final is not None else u.new_zeros(0)
 
 
 @segmented_scan_op.register_fake

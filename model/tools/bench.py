@@ -12,7 +12,7 @@ from torch import Tensor
 
 from model.config import Engine, Precision
 from model.detector import PHiM
-from model.graph.engine import GraphStreamingDetector, streaming_detector
+from model.graph.engine import GraphStreamingDetector, SectorRejected, streaming_detector
 from model.ops.scan import resolve_scan
 from model.precision import autocast
 from model.sectors import split_turn
@@ -27,6 +27,7 @@ class ModelBench:
     scan: str  # the selective-scan implementation that ran (model/ops/scan.py)
     threads: int
     batch: int  # streams per forward
+    sector_points: int  # fixed/graph: the points every sector was padded to (0: its own bucket)
     sectors_per_turn: int
     points_per_sector: list[int]
     iterations: int  # timed steps
@@ -65,11 +66,12 @@ def bench_model(
     warmup_turns: int = 2,
     engine: Engine = Engine.EAGER,
     precision: Precision = Precision.FP32,
+    sector_points: int = 0,
 ) -> ModelBench:
     """Stream `turn` (N, C) split into sectors, `batch` streams at once, in `precision`; time every step
     after warm-up (a graph engine first learns its capacities from the turn, and compiles during the
-    warm-up)."""
-    det = streaming_detector(model, engine, precision=precision)
+    warm-up; every sector padded to `sector_points` shares one bucket)."""
+    det = streaming_detector(model, engine, precision=precision, sector_points=sector_points)
     dev = det.device
     cfg = model.cfg
     sectors = [s.to(dev) for s in split_turn(turn, cfg.sectors_per_turn)]
@@ -83,8 +85,11 @@ def bench_model(
         for k, sector in enumerate(sectors):
             _sync(dev)
             t0 = time.perf_counter()
-            _, states = det.step([sector] * batch, states)
+            results, states = det.step([sector] * batch, states)
             _sync(dev)
+            rejected = [r for r in results if isinstance(r, SectorRejected)]
+            if rejected:  # a step that skipped a stream's sector would be timed as if it had run
+                raise ValueError(rejected[0].message)
             if t >= warmup_turns:
                 times[k].append((time.perf_counter() - t0) * 1e3)
     if dev.type == "cuda":
@@ -100,6 +105,7 @@ def bench_model(
         scan=resolve_scan(cfg.backbone.mamba.scan, dev).value,
         threads=torch.get_num_threads(),
         batch=batch,
+        sector_points=sector_points,
         sectors_per_turn=len(sectors),
         points_per_sector=[int(s.shape[0]) for s in sectors],
         iterations=len(all_ms),

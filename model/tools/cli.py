@@ -84,6 +84,14 @@ def info(config: str, points: Path | None, as_json: bool) -> None:
 @click.option("--scan", type=EnumValue(ScanImpl), help="Selective scan [default: the config's].")
 @engine_option
 @precision_option
+@click.option(
+    "--sector-points",
+    type=click.IntRange(0),
+    default=0,
+    show_default=True,
+    help="fixed/graph: pad every sector to this many points (one capacity bucket, one compile, as a server "
+    "pads to its --sector-points); 0: each sector's own bucket.",
+)
 @json_option
 def bench_model_cmd(
     config: str,
@@ -96,6 +104,7 @@ def bench_model_cmd(
     scan: ScanImpl | None,
     engine: Engine,
     precision: Precision,
+    sector_points: int,
     as_json: bool,
 ) -> None:
     """Per-sector latency, sector buffer loaded: one sector at a time of a scan (fresh weights by default)."""
@@ -106,7 +115,10 @@ def bench_model_cmd(
     if scan is not None:
         model.set_scan(scan)
     turn, source = load_turn(points, fallback_kitti=True)
-    result = bench_model(model, turn, batch=batch, turns=turns, engine=engine, precision=precision).to_dict()
+    result = bench_model(
+        model, turn, batch, turns, engine=engine, precision=precision, sector_points=sector_points
+    )
+    result = result.to_dict()
     result |= {"input": source}
     if as_json:
         click.echo(json.dumps(result))
