@@ -8,7 +8,11 @@
 #   tests    tests/test_cuda.py (parity: kernels, eager, fixed and compiled graph step, bf16)    ~3 min
 #   profile  paper graph step, batch 1, bf16 then fp32: wall time against kernel time, top kernels ~3 min
 #   bench    phim bench model: paper and tiny, eager and graph, batch 1 and 8, bf16               ~8 min
+#   server   tiny (shipped) served by the graph engine, bf16, max batch 32: zenoh closed-loop sweep 1..64
+#            vehicles, then open loop at sensor rate (compiles 6 batch buckets first)             ~6 min
 #   eval     the shipped model's accuracy in fp32 and bf16 on the GPU                              ~2 min
+# SERVE_DEVICE (cuda), SERVE_ENGINE (graph), SERVE_PRECISION (bf16) and SWEEP (1,4,16,64) change the server
+# stage, e.g. to try it on a CPU.
 # Every step has a time limit; OUTDIR/steps.txt says how each ended, and the table comes last.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -31,7 +35,42 @@ bench() { # CONFIG BATCH ENGINE PRECISION SECONDS
         --precision "$4" --device cuda --turns 10 --sector-points $points --json
 }
 
-nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
+serve_and_sweep() { # the worker as deployed, driven over zenoh by the load tester on the same host
+    local dev=${SERVE_DEVICE:-cuda} engine=${SERVE_ENGINE:-graph} sweep=${SWEEP:-1,4,16,64} t0=$SECONDS
+    "$py" -m phim serve --device "$dev" --engine "$engine" --precision "${SERVE_PRECISION:-bf16}" \
+        --max-batch 32 --max-streams 128 \
+        --queue-size 256 --port 18080 --zenoh-listen tcp/127.0.0.1:17447 >"$out/serve.log" 2>&1 &
+    local pid=$!
+    until curl -sf localhost:18080/health/ready >/dev/null; do
+        sleep 2
+        if ! kill -0 $pid 2>/dev/null || ((SECONDS - t0 > 420)); then
+            echo "server not ready after $((SECONDS - t0))s" | tee -a "$out/steps.txt"
+            kill $pid 2>/dev/null
+            return
+        fi
+    done
+    echo "server ready rc=0 $((SECONDS - t0))s" | tee -a "$out/steps.txt"
+    local client=(--transport zenoh --zenoh-connect tcp/127.0.0.1:17447 --url http://127.0.0.1:18080 --synthetic
+        --warmup 2 --duration 8 --keep-going --no-progress)
+    step loadtest_closed 200 "$py" -m phim loadtest "${client[@]}" --mode closed --sweep "$sweep" --json
+    step loadtest_open 200 "$py" -m phim loadtest "${client[@]}" --mode open --sweep "$sweep" --json
+    kill -TERM $pid
+    wait $pid
+    "$py" - "$out" <<'PY'
+import json, pathlib, sys
+out = pathlib.Path(sys.argv[1])
+for mode in ("closed", "open"):
+    try:
+        r = json.loads((out / f"loadtest_{mode}.out").read_text())
+    except ValueError:
+        continue
+    for s in r["steps"]:
+        keys = ("vehicles", "achieved_sectors_per_s", "p50_ms", "p99_ms", "server_model_p50_ms", "send_lag_p99_ms")
+        print(mode, {k: s[k] for k in keys + ("sent", "answered", "errors", "lost")})
+PY
+}
+
+{ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader || echo "no GPU"; } | tee "$out/gpu.txt"
 "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" | tee -a "$out/gpu.txt"
 for stage in "$@"; do
     case $stage in
@@ -54,6 +93,9 @@ for stage in "$@"; do
         bench tiny 1 graph fp32 90
         bench tiny 8 graph fp32 90
         bench paper 1 graph fp32 150
+        ;;
+    server)
+        serve_and_sweep
         ;;
     eval)
         for precision in fp32 bf16; do
