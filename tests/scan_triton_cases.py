@@ -38,9 +38,9 @@ def run_case(name: str, segs: Segments, D: int, N: int, shared: bool, with_h0: b
     A = -torch.rand(D, 1 if shared else N, generator=gen, dtype=torch.float64) * 4
     h0 = torch.randn(S, D, N, generator=gen, dtype=torch.float64) if with_h0 else None
     y_ref, fin_ref = segmented_scan(u, delta, A, B, C, segs, h0)
-    dev = [t.to(device) for t in (segs.start, segs.valid, segs.seg, segs.last)]
+    on_dev = Segments(*(t.to(device) for t in (segs.start, segs.valid, segs.seg, segs.last)))
     args = [t.float().to(device) for t in (u, delta, A, B, C)]
-    y, fin = segmented_scan_triton(*args, *dev, None if h0 is None else h0.float().to(device))
+    y, fin = segmented_scan_triton(*args, on_dev, None if h0 is None else h0.float().to(device))
     out = {"case": name, "y_err": _rel(y, y_ref), "pad_zero": bool((y.cpu()[~segs.valid] == 0).all())}
     if with_h0:
         out["final_err"] = _rel(fin, fin_ref)

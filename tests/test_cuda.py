@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import copy
 import csv
-import dataclasses
 import functools
 from pathlib import Path
 
@@ -204,19 +203,12 @@ def test_bf16_graph_step_on_cuda_agrees_with_fp32(compile):
 def test_paper_graph_step_on_cuda_equals_eager(compile):
     """The paper config (strides 1, 2, 4, kernels 3 and 5) on the GPU: the fixed-shape step, op by op and
     compiled (CUDA graphs), equals the eager detector there on real KITTI sectors, two streams batched."""
-    from test_graph_step import run_both
+    from test_graph_step import paper_model, run_both
 
-    from model.config import paper
-    from model.detector import PHiM
     from model.graph.engine import GraphStreamingDetector
 
-    cfg = paper()
-    cfg = dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, score_threshold=0.3))
-    torch.manual_seed(2)
-    model = PHiM(cfg).eval()
-    with torch.no_grad():
-        model.head.heatmap[-1].weight.mul_(40.0)
-    model = model.to(CUDA)
+    model = paper_model().to(CUDA)
+    cfg = model.cfg
     turns = []
     for i in (0, 1):
         scan = kitti_scan(i)

@@ -171,14 +171,21 @@ def test_a_model_reading_intensity_equals_eager():
     run_both(GraphStreamingDetector(model), StreamingDetector(model), [[s] for s in sectors])
 
 
-def test_paper_config_equals_eager():
-    """The paper config (every block kind: strides 1, 2, 4, kernels 3 and 5) on a thinned synthetic turn."""
+def paper_model() -> PHiM:
+    """The paper config with random weights whose heatmap has clear peaks (score threshold 0.3)."""
     cfg = paper()
     cfg = dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, score_threshold=0.3))
     torch.manual_seed(2)
     model = PHiM(cfg).eval()
     with torch.no_grad():
         model.head.heatmap[-1].weight.mul_(40.0)
+    return model
+
+
+def test_paper_config_equals_eager():
+    """The paper config (every block kind: strides 1, 2, 4, kernels 3 and 5) on a thinned synthetic turn."""
+    model = paper_model()
+    cfg = model.cfg
     turn = torch.from_numpy(synthetic_turn(seed=1))[::8]
     turn = torch.cat([turn, turn.new_zeros(turn.shape[0], 1)], 1)  # elongation column
     sectors = split_turn(turn, cfg.sectors_per_turn)

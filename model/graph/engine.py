@@ -1,13 +1,14 @@
 """`GraphStreamingDetector`: the streaming API of `model.stream.StreamingDetector` over the fixed-shape step.
 
 Stream states live on the device in preallocated slots (`model.graph.slots.StateSlots`); a state is a small
-handle (`SlotState`). The host pads the batch to its buckets (`model.graph.buckets`), gathers the batch's
-state rows, runs the step (compiled with torch.compile where asked), copies one flat tensor back
-(candidates, stats, site counts), re-runs the step with larger capacities if any sites did not fit, runs NMS
-on the candidates and, only then, writes the new state rows back: a failed step changes no slot. A compiled
-detector, once sealed after its warm-up, runs op by op whatever bucket it did not compile. A sector
-with more voxels than `sector_voxels` fails alone (`SectorRejected`): the batch's other streams get their
-results and new states, its stream keeps its state.
+handle (`SlotState`). The host picks the batch's buckets (`model.graph.buckets`), pads the batch on the
+device (only the sectors' own rows are copied there), gathers the batch's state rows, runs the step
+(compiled with torch.compile where asked), copies one flat tensor back (candidates, stats, site counts),
+re-runs the step with larger capacities if any sites did not fit, runs NMS on the candidates and, only
+then, writes the new state rows back: a failed step changes no slot. A compiled detector, once sealed after
+its warm-up, runs op by op whatever bucket it did not compile. A sector with more voxels than
+`sector_voxels` fails alone (`SectorRejected`): the batch's other streams get their results and new
+states, its stream keeps its state.
 """
 
 from __future__ import annotations
@@ -235,11 +236,12 @@ class GraphStreamingDetector:
         b = len(states) if batch is None else batch
         width = max(int(p.shape[1]) for p in points)
         rows = row_bucket(self._points(points))
-        padded = torch.zeros(b, rows, width)  # (B, Np, C)
-        for i, p in enumerate(points):
-            padded[i, : p.shape[0], : p.shape[1]] = p
-        counts = torch.tensor([int(p.shape[0]) for p in points] + [0] * (b - len(points)))  # (B,)
         dev = self.device
+        # padded on the device: only the sectors' own rows cross from the host (or none, if already there)
+        padded = torch.zeros(b, rows, width, device=dev)  # (B, Np, C)
+        for i, p in enumerate(points):
+            padded[i, : p.shape[0], : p.shape[1]] = p.to(dev, non_blocking=True)
+        counts = torch.tensor([int(p.shape[0]) for p in points] + [0] * (b - len(points)))  # (B,)
         st = self.slots.gather(self.slots.read_rows(states, b))
         turn = [i for i, s in enumerate(states) if self.cfg.resets_history(s.sectors_seen)]
         if turn:  # a turn boundary: these streams' global Mamba starts from zero (the buffer stays)
@@ -247,7 +249,7 @@ class GraphStreamingDetector:
             for t in (*st.conv, *st.ssm):
                 t.index_fill_(0, rows, 0.0)
         return [
-            padded.to(dev, non_blocking=True),
+            padded,
             counts.to(dev, non_blocking=True),
             st.conv,
             st.ssm,

@@ -152,12 +152,13 @@ def _(u, delta, A, B, C, start, valid, seg, last, h0, chunk_size):
     if fast not in _announced:
         _announced.add(fast)
         log.info("graph step's segmented scan on %s: %s", u.device, "triton" if fast else "torch (reference)")
+    segs = Segments(start, valid, seg, last)
     if not fast:  # float64 (tests), or no triton: the torch twin
-        y, final = segmented_scan(u, delta, A, B, C, Segments(start, valid, seg, last), h0, chunk_size)
+        y, final = segmented_scan(u, delta, A, B, C, segs, h0, chunk_size)
     else:
         from model.graph.scan_triton import segmented_scan_triton
 
-        y, final = segmented_scan_triton(u, delta, A, B, C, start, valid, seg, last, h0)
+        y, final = segmented_scan_triton(u, delta, A, B, C, segs, h0)
     return y.contiguous(), final.contiguous() if final is not None else u.new_zeros(0)
 
 

@@ -23,6 +23,8 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
+from model.graph.segments import Segments
+
 MAX_CHUNKS = 512  # the carry kernel walks the chunks one by one: the chunk grows with T to keep this bound
 
 
@@ -101,24 +103,17 @@ def chunk_length(tokens: int) -> int:
 
 
 def segmented_scan_triton(
-    u: Tensor,
-    delta: Tensor,
-    A: Tensor,
-    B: Tensor,
-    C: Tensor,
-    start: Tensor,
-    valid: Tensor,
-    seg: Tensor,
-    last: Tensor,
-    h0: Tensor | None,
+    u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, segs: Segments, h0: Tensor | None
 ) -> tuple[Tensor, Tensor | None]:
-    """`segmented_scan`'s contract (u, delta (T, D); A (D, N | 1); B, C (T, N); the Segments' tensors;
-    h0 (S, D, N) or None), float32 compute: y (T, D) in u's dtype and the final states (S, D, N) float32
-    (h0[s] for a stream without tokens), or None without h0."""
+    """`segmented_scan`'s contract (u, delta (T, D); A (D, N | 1); B, C (T, N); segs over T tokens and S
+    streams; h0 (S, D, N) or None), float32 compute: y (T, D) in u's dtype and the final states (S, D, N)
+    float32 (h0[s] for a stream without tokens), or None without h0."""
     T, D = u.shape
     N = B.shape[1]
     f32 = [t.float().contiguous() for t in (u, delta, A.expand(D, N), B, C)]
-    flags = [t.contiguous() for t in (start.to(torch.int8), valid.to(torch.int8), seg, last)]
+    flags = [
+        t.contiguous() for t in (segs.start.to(torch.int8), segs.valid.to(torch.int8), segs.seg, segs.last)
+    ]
     k = chunk_length(T)
     nc = max(-(-T // k), 1)
     y = torch.empty(T, D, device=u.device)
