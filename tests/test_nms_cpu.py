@@ -39,6 +39,7 @@ def test_equals_the_twin_on_boxes_spread_wide_and_degenerate():
     b = np.concatenate([clustered(g, 5, 10), rand_boxes(g, 60, spread=5000.0)])
     b = np.concatenate([b, b[:20]])  # exact duplicates
     b[-5:, 3:5] = 0.0  # zero-size: IoU 0, suppress nothing
+    b[3, 0], b[7, 4], b[11, 1] = np.nan, np.inf, 1e300  # non-finite and absurd: never above a threshold
     s = g.uniform(size=len(b))
     groups = np.zeros(len(b), dtype=np.int64)
     for threshold in (0.0, 0.3, 0.9):

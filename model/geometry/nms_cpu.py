@@ -76,23 +76,41 @@ def _cell(gx, gy, w, cells, hashed):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
+def _grid(boxes):  # pragma: no cover - compiled
+    """Buckets of the boxes' grid cells (cells as wide as the largest circumscribed circle, so boxes that
+    can intersect lie in neighbouring cells). Boxes with a non-finite value go in no bucket: as in the
+    twin, their IoU is never above a threshold. Returns (cx, cy (N,) cell coordinates >= 1, w, cells,
+    hashed, by_cell (N,) positions grouped by bucket, first (cells + 1,) CSR offsets, finite (N,))."""
+    n = boxes.shape[0]
+    finite = np.ones(n, dtype=np.bool_)
+    rmax = 0.0
+    for i in range(n):
+        for c in range(7):
+            finite[i] &= np.isfinite(boxes[i, c])
+        if finite[i]:
+            rmax = max(rmax, 0.5 * math.sqrt(boxes[i, 3] ** 2 + boxes[i, 4] ** 2))
+    cell = max(2.0 * rmax, 1e-6)
+    fx = np.where(finite, np.floor(np.clip(boxes[:, 0] / cell, -1e12, 1e12)), 0.0)
+    fy = np.where(finite, np.floor(np.clip(boxes[:, 1] / cell, -1e12, 1e12)), 0.0)
+    cx = (fx - fx.min() + 1).astype(np.int64)  # a neighbour cell of any box has coordinates >= 0
+    cy = (fy - fy.min() + 1).astype(np.int64)
+    hashed = (fx.max() - fx.min() + 3) * (fy.max() - fy.min() + 3) > 4 * n + 64  # spread wide: hash
+    w = cx.max() + 2
+    cells = 4 * n + 64 if hashed else w * (cy.max() + 2)
+    key = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        key[i] = _cell(cx[i], cy[i], w, cells, hashed) if finite[i] else cells
+    by_cell = np.argsort(key, kind="mergesort")  # positions grouped by bucket, in score order inside
+    first = np.searchsorted(key[by_cell], np.arange(cells + 1))
+    return cx, cy, w, cells, hashed, by_cell, first, finite
+
+
+@numba.njit(cache=True, nogil=True)
 def _greedy(boxes, thresholds, groups, max_out):  # pragma: no cover - compiled
     """boxes (N, 7) float64 in descending score order, thresholds (N,), groups (N,) int64 -> kept
     positions (K,) int64 in that order, K <= max_out."""
     n = boxes.shape[0]
-    radius = 0.5 * np.sqrt(boxes[:, 3] ** 2 + boxes[:, 4] ** 2)
-    cell = max(2.0 * radius.max(), 1e-6)
-    cx = np.floor(boxes[:, 0] / cell).astype(np.int64)
-    cy = np.floor(boxes[:, 1] / cell).astype(np.int64)
-    x0, y0 = cx.min() - 1, cy.min() - 1  # a neighbour cell of any box has gx, gy >= 0
-    w, h = cx.max() - x0 + 2, cy.max() - y0 + 2
-    hashed = w * h > 4 * n + 64  # boxes spread over a wide area: hash the cells into 4 n + 64 buckets
-    cells = 4 * n + 64 if hashed else w * h
-    key = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        key[i] = _cell(cx[i] - x0, cy[i] - y0, w, cells, hashed)
-    by_cell = np.argsort(key, kind="mergesort")  # positions grouped by cell, in score order inside
-    first = np.searchsorted(key[by_cell], np.arange(cells + 1))  # (cells + 1,) CSR offsets
+    cx, cy, w, cells, hashed, by_cell, first, finite = _grid(boxes)
     gone = np.zeros(n, dtype=np.bool_)
     kept = np.empty(min(n, max_out), dtype=np.int64)
     k = 0
@@ -109,12 +127,11 @@ def _greedy(boxes, thresholds, groups, max_out):  # pragma: no cover - compiled
         k += 1
         if k == max_out:
             break
+        if not finite[i]:
+            continue
         for ox in range(-1, 2):
             for oy in range(-1, 2):
-                gx, gy = cx[i] + ox - x0, cy[i] + oy - y0
-                if not hashed and (gx >= w or gy >= h):
-                    continue
-                c = _cell(gx, gy, w, cells, hashed)
+                c = _cell(cx[i] + ox, cy[i] + oy, w, cells, hashed)  # in [0, cells): cx, cy >= 1
                 for p in range(first[c], first[c + 1]):
                     j = by_cell[p]
                     if j <= i or gone[j] or groups[j] != groups[i]:
