@@ -46,8 +46,9 @@ def save_checkpoint(path: str | Path, model: PHiM, meta: dict[str, Any] | None =
     tmp.replace(path)
 
 
-# how the selective scan is computed, not what: a checkpoint loads under any of these settings
-EXECUTION_FIELDS = frozenset({"backbone.mamba.scan", "backbone.mamba.chunk_size"})
+# how the model runs, not what it computes (the selective scan's implementation, the fixed-shape step's
+# rows per buffered sector): a checkpoint loads under any of these settings
+EXECUTION_FIELDS = frozenset({"backbone.mamba.scan", "backbone.mamba.chunk_size", "sector_voxels"})
 
 
 def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:

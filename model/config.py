@@ -224,8 +224,13 @@ class PHiMConfig:
             sectors_per_turn=d["sectors_per_turn"],
             buffer_sectors=d["buffer_sectors"],
             history=MambaHistory(d.get("history", MambaHistory.TURN)),
-            sector_voxels=d.get("sector_voxels", 8192),
+            sector_voxels=d.get("sector_voxels") or _default_sector_voxels(d["name"]),
         )
+
+
+def _default_sector_voxels(name: str) -> int:
+    """For a config dict written before `sector_voxels` existed: the named config's, else the default."""
+    return CONFIGS[name]().sector_voxels if name in CONFIGS else PHiMConfig.sector_voxels
 
 
 def _tuples(d: dict) -> dict:

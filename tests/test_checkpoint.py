@@ -45,7 +45,8 @@ def test_mismatch_names_the_field(tmp_path):
 
 
 def test_scan_settings_are_not_a_mismatch(tmp_path):
-    """How the scan is computed (implementation, chunk size) is no part of the model: any setting loads."""
+    """How the scan is computed (implementation, chunk size) and the graph engine's sector_voxels are no
+    part of the model: any setting loads."""
     cfg = tiny()
     mamba = dataclasses.replace(cfg.backbone.mamba, scan=ScanImpl.REFERENCE, chunk_size=8)
     saved = dataclasses.replace(cfg, backbone=dataclasses.replace(cfg.backbone, mamba=mamba))
@@ -54,6 +55,9 @@ def test_scan_settings_are_not_a_mismatch(tmp_path):
     model = load_checkpoint(path, expected=tiny())
     assert model.cfg == saved  # the file's own setting is used
     assert tiny().backbone.mamba.scan is ScanImpl.AUTO
+    roomy = dataclasses.replace(tiny(), sector_voxels=20000)  # the graph engine's rows: no part of the model
+    save_checkpoint(path, PHiM(roomy))
+    assert load_checkpoint(path, expected=tiny()).cfg.sector_voxels == 20000
 
 
 def test_fields_added_later_take_their_defaults(tmp_path):
@@ -63,6 +67,7 @@ def test_fields_added_later_take_their_defaults(tmp_path):
     payload = torch.load(path, weights_only=True)
     del payload["config"]["backbone"]["mamba"]["shared_decay"]  # as written before these fields existed
     del payload["config"]["head"]["heading"]
+    del payload["config"]["sector_voxels"]  # the named config's (paper: 24,576), not the field's default
     torch.save(payload, path)
     model = load_checkpoint(path, expected=paper())
     assert model.cfg == paper() and model.cfg.backbone.mamba.shared_decay is False
