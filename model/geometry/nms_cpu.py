@@ -1,14 +1,14 @@
 """Greedy rotated NMS as a CPU kernel (numba): the fast twin of `model.geometry.nms._grouped_nms_torch`.
 
 The torch version finds overlapping pairs and runs the greedy pass as tensor ops: on the host that is
-2 ms a `tiny` sector (859 candidates) and up to 250 ms for 4,096 candidates of an untrained `paper` model on
-the 2-core machine, for every stream of a batch, after the GPU has finished. Here the greedy pass is a plain
-loop in score order: a kept box looks only at the later candidates of its own group in the 3 x 3 grid cells
-around it (cells as wide as the largest box's circumscribed circle, so every pair that can intersect is
-seen), tests the area ratio (IoU <= smaller / larger area) and the axis-aligned upper bound of the IoU,
-and only then computes the exact BEV IoU, in float64, by the same slab clipping as `model.geometry.boxes`.
-The result is the torch twin's for the same inputs (the parity test), up to rounding of IoUs within ~1e-7
-of a threshold for float32 boxes.
+1.1 ms a `tiny` sector and 5 ms for the 4,096 candidates of an untrained `paper` model on the 2-core
+machine (`scripts/bench_nms.py`), for every stream of a batch, after the GPU has finished. Here the
+greedy pass is a plain loop in score order: a kept box looks only at the later candidates of its own
+group in the 3 x 3 grid cells around it (cells as wide as the largest box's circumscribed circle, so every
+pair that can intersect is seen), tests the area ratio (IoU <= smaller / larger area) and the axis-aligned
+upper bound of the IoU, and only then computes the exact BEV IoU, in float64, by the same slab clipping as
+`model.geometry.boxes`. The result is the torch twin's for the same inputs (the parity test), up to
+rounding of IoUs within ~1e-7 of a threshold for float32 boxes.
 """
 
 from __future__ import annotations

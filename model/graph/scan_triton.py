@@ -2,7 +2,7 @@
 `model.graph.mamba.segmented_scan`, the CUDA kernel of the `phim::segmented_scan` custom op.
 
 The reference materialises the decays and inputs of every token and state, (T, N, D) tensors several
-times over (a paper-config pack of 30k tokens: ~0.5 GB each, per scan); here nothing of that size exists:
+times over (a paper-config pack of 16k tokens: ~270 MB each, per scan); here nothing that size exists:
 
 1. `_chunk_kernel` (one program per chunk of K tokens x channel block): scan the chunk from zero state,
    honouring the segment starts (a start continues its stream's carried state h0[seg], or zero), and keep
@@ -49,7 +49,7 @@ def _chunk_kernel(
     else:
         h = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
     prod = tl.full((BLOCK_D, BLOCK_N), 1.0, dtype=tl.float32)
-    zero = tl.zeros((BLOCK_D,), dtype=tl.int64)  # per-token scalars are read as (BD,) vectors of one value
+    zero = tl.zeros((BLOCK_D,), dtype=tl.int64)  # per-token values as (BD,) vectors (interpreter-safe)
     for i in range(0, K):
         t = c * K + i + zero  # (BD,)
         inside = t < T
