@@ -7,9 +7,11 @@
 # Usage: bash scripts/gpu_session.sh OUTDIR STAGE...   stages, in the order worth running them:
 #   tests    tests/test_cuda.py (parity: kernels, eager, fixed and compiled graph step, bf16)    ~3 min
 #   profile  paper graph step, batch 1, bf16 then fp32: wall time against kernel time, top kernels ~3 min
-#   bench    phim bench model: paper and tiny, eager and graph, batch 1 and 8, bf16               ~8 min
+#   bench    phim bench model: paper eager, and graph (crops) in bf16 at batch 1 and 8             ~8 min
+#   bench2   tiny graph at batch 1 and 8; paper graph bf16 batch 8 on the whole map (--whole-map)  ~7 min
 #   server   tiny (shipped) served by the graph engine, bf16, max batch 32: zenoh closed-loop sweep 1..64
-#            vehicles, then open loop at sensor rate (compiles 6 batch buckets first)             ~6 min
+#            vehicles, then open loop at sensor rate (compiles 6 batch buckets first, on the whole
+#            map: SERVE_BEV_CROP=1 compiles the crop forms too, twice the warm-up)                ~6 min
 #   eval     the shipped model's accuracy in fp32 and bf16 on the GPU                              ~2 min
 # SERVE_DEVICE (cuda), SERVE_ENGINE (graph), SERVE_PRECISION (bf16) and SWEEP (1,4,16,64) change the server
 # stage, e.g. to try it on a CPU.
@@ -30,15 +32,16 @@ step() { # NAME SECONDS COMMAND...: stdout to OUTDIR/NAME.out, stderr to NAME.er
     local rc=$?
     echo "$name rc=$rc $((SECONDS - t0))s" | tee -a "$out/steps.txt"
 }
-bench() { # CONFIG BATCH ENGINE PRECISION SECONDS
-    step "bench_$1_b$2_$3_$4" "$5" "$py" -m phim bench model --config "$1" --batch "$2" --engine "$3" \
-        --precision "$4" --device cuda --turns 10 --sector-points $points --json
+bench() { # CONFIG BATCH ENGINE PRECISION SECONDS [--whole-map]: a graph run compiles the whole map's
+    # bucket in its first warm-up turn and the crops' in the second
+    step "bench_$1_b$2_$3_$4${6:-}" "$5" "$py" -m phim bench model --config "$1" --batch "$2" --engine "$3" \
+        --precision "$4" --device cuda --turns 10 --sector-points $points --json ${6:-}
 }
 
 serve_and_sweep() { # the worker as deployed, driven over zenoh by the load tester on the same host
     local dev=${SERVE_DEVICE:-cuda} engine=${SERVE_ENGINE:-graph} sweep=${SWEEP:-1,4,16,64} t0=$SECONDS
     "$py" -m phim serve --device "$dev" --engine "$engine" --precision "${SERVE_PRECISION:-bf16}" \
-        --max-batch 32 --max-streams 128 \
+        --max-batch 32 --max-streams 128 "$( ((${SERVE_BEV_CROP:-0})) && echo --bev-crop || echo --no-bev-crop)" \
         --queue-size 256 --port 18080 --zenoh-listen tcp/127.0.0.1:17447 >"$out/serve.log" 2>&1 &
     local pid=$!
     until curl -sf localhost:18080/health/ready >/dev/null; do
@@ -88,11 +91,13 @@ for stage in "$@"; do
         ;;
     bench)
         bench paper 1 eager fp32 60
-        bench paper 1 graph bf16 150
-        bench paper 8 graph bf16 180
-        bench tiny 1 graph fp32 90
-        bench tiny 8 graph fp32 90
-        bench paper 1 graph fp32 150
+        bench paper 1 graph bf16 240
+        bench paper 8 graph bf16 270
+        ;;
+    bench2)
+        bench tiny 1 graph fp32 120
+        bench tiny 8 graph fp32 120
+        bench paper 8 graph bf16 240 --whole-map
         ;;
     server)
         serve_and_sweep
@@ -110,19 +115,21 @@ done
 import json, pathlib, sys
 out = pathlib.Path(sys.argv[1])
 print(open(out / "gpu.txt").read().strip())
-step_gflops = {"paper": 727.3, "tiny": 1.24}  # one streaming step (docs/benchmarks.md, phim model info)
+# one streaming step, whole map / crops (torch.utils.flop_counter on the fixed step, docs/benchmarks.md)
+step_gflops = {("paper", False): 739.3, ("paper", True): 377.5, ("tiny", False): 1.24, ("tiny", True): 0.99}
 rows = []
 for f in sorted(out.glob("bench_*.out")):
     try:
         r = json.loads(f.read_text())
     except ValueError:
         continue  # the step failed: steps.txt says how
-    tflops = step_gflops[r["config"]] * r["batch"] / r["p50_ms"]  # GFLOP per ms = TFLOP/s
-    keys = ("config", "engine", "precision", "batch", "p50_ms", "p90_ms", "peak_mem_mb")
+    crop = r["engine"] != "eager" and r["bev_crop"]
+    tflops = step_gflops[r["config"], crop] * r["batch"] / r["p50_ms"]  # GFLOP per ms = TFLOP/s
+    keys = ("config", "engine", "bev_crop", "precision", "batch", "p50_ms", "p90_ms", "peak_mem_mb")
     rows.append("| " + " | ".join(str(r[k]) for k in keys) + f" | {r['batch'] * 1e3 / r['p50_ms']:.0f} | {tflops:.1f} |")
 if rows:
-    print("| config | engine | precision | streams | p50 ms | p90 ms | peak MB | sectors/s | TFLOP/s |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| config | engine | crops | precision | streams | p50 ms | p90 ms | peak MB | sectors/s | TFLOP/s |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
 for f in sorted(out.glob("eval_tiny_*.out")):
     try:

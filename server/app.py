@@ -80,6 +80,7 @@ def build_detector(settings: Settings) -> tuple[Detector, str]:
         settings.max_streams,
         Precision(settings.precision),
         settings.sector_points,
+        settings.bev_crop,
     )
     log.info(
         "model: config=%s device=%s engine=%s precision=%s scan=%s weights=%s",

@@ -91,6 +91,12 @@ class Settings(BaseSettings):
         "one capacity bucket per batch bucket (graph: compiled at warm-up; a larger sector runs op by op, "
         "logged); 0: the bucket of each batch's largest sector.",
     )
+    bev_crop: bool = Field(
+        True,
+        description="fixed/graph: once a stream has run a turn, the BEV backbone and head run on a crop "
+        "around its new sector (tiny 71 %, paper 47 % of the map; docs/model.md); false: the whole map "
+        "every step (graph: half the buckets to compile at warm-up).",
+    )
     capacity_headroom: float = Field(
         2.0,
         ge=1.0,

@@ -24,17 +24,20 @@ def warm_up(det: Detector, sectors: int, max_batch: int = 1, headroom: float = 1
     """Run `sectors` single-stream forwards on a synthetic turn (filling the sector buffer), then (eager)
     one batch of two streams; returns the mean seconds of one forward (0.1 if no forward ran). A fixed-shape
     detector first learns its capacities from the turn, runs a batch of fresh streams for every bucket up to
-    `max_batch` (a compiled one compiles them here, before the worker is ready), and gives back the one
-    stream-state slot it used; its capacities are the turn's times `headroom` (real scans have more sites
-    per point than the synthetic turn), and it is sealed: no compiling after the warm-up."""
+    `max_batch`, on the whole map and on crops (a compiled one compiles them here, before the worker is
+    ready), and gives back the one stream-state slot it used; its capacities are the turn's times
+    `headroom` (real scans have more sites per point than the synthetic turn), and it is sealed: no
+    compiling after the warm-up."""
     if sectors <= 0:
         return 0.1
     turn = split_turn(torch.from_numpy(synthetic_turn(seed=0)), det.cfg.sectors_per_turn)  # list of (N_k, 4)
     graph = isinstance(det, GraphStreamingDetector)
     if graph:
         det.calibrate(turn, headroom)
+        crops = [False, True] if det.step_module.crop is not None and det.bev_crop else [False]
         for b in (b for b in BATCH_BUCKETS if b <= batch_bucket(max_batch)):
-            det.run_fresh([turn[i % len(turn)] for i in range(b)])
+            for crop in crops:  # the whole map (a stream's first turn), and crops (every sector after it)
+                det.run_fresh([turn[i % len(turn)] for i in range(b)], crop)
     pair = sectors >= 2 and not graph  # a fixed-shape detector ran its batch buckets above
     state = taken = det.init_state()
     t0 = time.monotonic()
@@ -74,6 +77,7 @@ def slot_info(det: Detector) -> dict[str, Any]:
 
 def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
     cfg = det.cfg
+    graph = isinstance(det, GraphStreamingDetector)
     return {
         "name": "PHiM",
         "version": package_version(),
@@ -84,8 +88,9 @@ def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
         "scan_impl": resolve_scan(cfg.backbone.mamba.scan, det.device).value,  # what runs on this device
         "engine": det.engine.value,
         "precision": det.precision.value,
-        "sector_voxels": det.sector_voxels if isinstance(det, GraphStreamingDetector) else None,
-        "sector_points": det.sector_points if isinstance(det, GraphStreamingDetector) else None,
+        "sector_voxels": det.sector_voxels if graph else None,
+        "sector_points": det.sector_points if graph else None,
+        "bev_crop": det.bev_crop and det.step_module.crop is not None if graph else None,
         **slot_info(det),
         "classes": list(cfg.head.class_names),
         "sectors_per_turn": cfg.sectors_per_turn,

@@ -163,7 +163,8 @@ def test_more_ranks_than_gpus_is_a_clear_error(monkeypatch):
 @pytest.mark.parametrize("compile", [False, True])
 def test_graph_step_on_cuda_equals_eager_on_cuda(models, compile):
     """The fixed-shape step on the GPU (op by op, and through torch.compile: Triton kernels, each bucket
-    replayed as a CUDA graph) equals the eager detector there, over two turns of two streams."""
+    replayed as a CUDA graph) equals the eager detector there, over two turns of two streams (the second
+    turn's dense part on crops)."""
     from test_graph_step import run_both
 
     from model.graph.engine import GraphStreamingDetector
@@ -202,7 +203,8 @@ def test_bf16_graph_step_on_cuda_agrees_with_fp32(compile):
 @pytest.mark.parametrize("compile", [False, True])
 def test_paper_graph_step_on_cuda_equals_eager(compile):
     """The paper config (strides 1, 2, 4, kernels 3 and 5) on the GPU: the fixed-shape step, op by op and
-    compiled (CUDA graphs), equals the eager detector there on real KITTI sectors, two streams batched."""
+    compiled (CUDA graphs), equals the eager detector there on real KITTI sectors, two streams batched (the
+    fifth sector's dense part on crops)."""
     from test_graph_step import paper_model, run_both
 
     from model.graph.engine import GraphStreamingDetector
@@ -218,6 +220,7 @@ def test_paper_graph_step_on_cuda_equals_eager(compile):
     graph.calibrate(turns[0])
     batches = [[turns[0][k], turns[1][k]] for k in range(cfg.sectors_per_turn)]
     run_both(graph, StreamingDetector(model), batches + batches[:1])
+    assert graph.crop_misses == 0 and any(cap.bev_crop for _, cap in graph.compiled_buckets) == compile
 
 
 def test_triton_segmented_scan_on_cuda_equals_its_twin():

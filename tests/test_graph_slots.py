@@ -118,7 +118,7 @@ def test_an_oversized_sector_fails_alone_and_its_state_stays(model: PHiM, sector
 
 def _tensors(det: GraphStreamingDetector, state) -> tuple[torch.Tensor, ...]:
     s = det.read_state(state)
-    return (*s.conv, *s.ssm, s.feats, s.cols, s.valid)
+    return (*s.conv, *s.ssm, s.feats, s.cols, s.valid, s.maps)
 
 
 def test_slot_memory_is_counted_and_only_used_slots_are_touched(model: PHiM):
@@ -127,9 +127,10 @@ def test_slot_memory_is_counted_and_only_used_slots_are_touched(model: PHiM):
     keep = model.cfg.buffer_sectors
     mamba = blocks * di * (cfg.mamba.d_conv - 1 + cfg.mamba.d_state) * 4  # float32 conv and ssm states
     buffer = keep * 4096 * (cfg.d_model * 4 + 2 * 8 + 1)  # feats float32, cols int64 (r, theta), valid
+    maps = model.cfg.bev.ny * model.cfg.bev.nx * (3 + 7 + 3) * 4  # the head's maps, float32
     rss = rss_bytes()
     det = GraphStreamingDetector(model, sector_voxels=4096, slots=300)
-    assert det.slots.slot_bytes == mamba + buffer
-    assert det.slots.total_bytes == 301 * (mamba + buffer)
+    assert det.slots.slot_bytes == mamba + buffer + maps
+    assert det.slots.total_bytes == 301 * (mamba + buffer + maps)
     assert det.slots.total_bytes > 400 * 2**20
     assert rss_bytes() - rss < 100 * 2**20  # torch.empty: pages of unused slots are never touched

@@ -194,8 +194,10 @@ def test_paper_config_equals_eager():
 
 def test_compiled_step_equals_eager_with_no_graph_break(model: PHiM):
     """torch.compile(fullgraph=True) of the whole step (padded inputs -> candidates) on the CPU: a graph
-    break raises. Two streams, two sectors each, a thinned turn (the graph's size does not depend on it)."""
+    break raises. Two streams, five sectors each (the fifth runs the dense part on crops), a thinned turn
+    (the graph's size does not depend on it)."""
     sectors = split_turn(torch.from_numpy(synthetic_turn(seed=4))[::4], model.cfg.sectors_per_turn)
     graph, eager = GraphStreamingDetector(model, compile=True), StreamingDetector(model)
     graph.calibrate(sectors)
-    run_both(graph, eager, [[sectors[0], sectors[2]], [sectors[1], sectors[3]]])
+    run_both(graph, eager, [[sectors[k % 4], sectors[(k + 2) % 4]] for k in range(5)])
+    assert {cap.bev_crop for _, cap in graph.compiled_buckets} == {False, True}

@@ -86,8 +86,9 @@ def test_a_compiled_server_warms_up_sealed_and_equals_the_eager_model():
             assert httpx.get(f"{s.url}/health/live", timeout=10).status_code == 200, "the warm-up failed"
             time.sleep(0.5)
         warmed = det.compiled_buckets
-        assert len(warmed) == 1 and det.sealed
-        assert httpx.get(f"{s.url}/v1/model", timeout=10).json()["sector_points"] == 40_000
+        assert {cap.bev_crop for _, cap in warmed} == {False, True} and len(warmed) == 2 and det.sealed
+        info = httpx.get(f"{s.url}/v1/model", timeout=10).json()
+        assert (info["sector_points"], info["bev_crop"]) == (40_000, True)
         for name, sectors in sequences.items():
             for seq, points in enumerate(sectors):
                 assert (len(points) > 40_000) == (name == "doubled")

@@ -14,7 +14,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from model.graph.step import Capacity
 
@@ -76,4 +76,4 @@ class CapacityPlanner:
         coarse = tuple(
             (max(a, rows[1 + 2 * i]), max(c, rows[2 + 2 * i])) for i, (a, c) in enumerate(cap.coarse)
         )
-        return Capacity(points=cap.points, voxels=max(cap.voxels, rows[0]), coarse=coarse)
+        return replace(cap, voxels=max(cap.voxels, rows[0]), coarse=coarse)

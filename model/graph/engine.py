@@ -6,7 +6,9 @@ device (only the sectors' own rows are copied there), gathers the batch's state 
 (compiled with torch.compile where asked), copies one flat tensor back (candidates, stats, site counts),
 re-runs the step with larger capacities if any sites did not fit, runs NMS on the candidates and, only
 then, writes the new state rows back: a failed step changes no slot. A compiled detector, once sealed after
-its warm-up, runs op by op whatever bucket it did not compile. A sector with more voxels than
+its warm-up, runs op by op whatever bucket it did not compile. Once a batch's streams have each run a
+turn, the step's dense part runs on crops around their new sectors (`model.graph.bev_crop`; checked by the
+wedge the step reports, else the batch runs again on the whole map). A sector with more voxels than
 `sector_voxels` fails alone (`SectorRejected`): the batch's other streams get their results and new
 states, its stream keeps its state.
 """
@@ -14,7 +16,7 @@ states, its stream keeps its state.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -22,6 +24,7 @@ from torch import Tensor
 from model.config import Engine, Precision
 from model.detector import PHiM
 from model.geometry.boxes import Detections
+from model.graph.bev_crop import EMPTY
 from model.graph.buckets import CapacityPlanner, batch_bucket, row_bucket
 from model.graph.slots import GraphStreamState, SlotState, StateSlots, StepStates, from_stream_state
 from model.graph.step import STATS, Capacity, GraphStep
@@ -61,6 +64,7 @@ class GraphStreamingDetector:
         slots: int = DEFAULT_SLOTS,
         precision: Precision = Precision.FP32,
         sector_points: int = 0,
+        bev_crop: bool = True,
     ):
         # folds the batchnorms, checks the precision; validation and initial states
         self.reference = StreamingDetector(model, precision=precision)
@@ -75,8 +79,12 @@ class GraphStreamingDetector:
         # one capacity bucket per batch bucket (the one a server compiles at warm-up); 0: the bucket of the
         # batch's largest sector
         self.sector_points = sector_points
-        d = self.model.backbone.cfg.d_model
-        blank = from_stream_state(self.reference.init_state(), self.cfg.buffer_sectors, sector_voxels, d)
+        # the dense part on crops around each new sector (`model.graph.bev_crop`) where the config has them;
+        # crop_misses: steps that ran crops for a sector outside its predicted wedge, then the whole map
+        self.bev_crop = bev_crop
+        self.crop_misses = 0
+        self.map_shape = (self.cfg.bev.ny, self.cfg.bev.nx, self.step_module.map_channels)
+        blank = self._graph_state(self.reference.init_state(), sector_voxels)
         self.slots = StateSlots(blank, slots)
         self._sealed = False  # see seal()
         self._compiled: set[tuple[int, Capacity]] = set()  # buckets the compiled step has run
@@ -156,9 +164,12 @@ class GraphStreamingDetector:
     def from_stream_state(self, state: StreamState) -> SlotState:
         """An eager state, written into a free slot; ValueError (and no slot taken) if a buffered sector has
         more than `sector_voxels` voxels."""
-        d = self.model.backbone.cfg.d_model
-        tensors = from_stream_state(state, self.cfg.buffer_sectors, self.sector_voxels, d)
+        tensors = self._graph_state(state, self.sector_voxels)  # first: a ValueError takes no slot
         return self.slots.write(self.init_state(), tensors)
+
+    def _graph_state(self, state: StreamState, sector_voxels: int) -> GraphStreamState:
+        d = self.model.backbone.cfg.d_model
+        return from_stream_state(state, self.cfg.buffer_sectors, sector_voxels, d, self.map_shape)
 
     @torch.inference_mode()
     def step(
@@ -172,18 +183,36 @@ class GraphStreamingDetector:
             self.validate(p)
         self.slots.check(states)
         n = len(points)
-        cand, stats, new = self._forward(points, self.inputs(points, states, batch_bucket(n)))
+        wedges = self._crop_wedges(states)
+        inputs = self.inputs(points, states, batch_bucket(n), wedges)
+        cand, stats, new = self._forward(points, inputs, wedges is not None)
         voxels = [int(v) for v in stats[:n, STATS.index("voxels")]]
         ok = [i for i, v in enumerate(voxels) if v <= self.sector_voxels]
+        ran_wedges = [int(w) for w in stats[:n, STATS.index("wedge")]]
+        if wedges is not None and any(ran_wedges[i] not in (wedges[i], EMPTY) for i in ok):
+            self.crop_misses += 1  # a sector left its predicted wedge: the whole map, from the same inputs
+            cand, stats, new = self._forward(points, inputs, False)
         results = self._results(cand[:n], stats[:n], states)
         self._write_back(new, [states[i].slot for i in ok], ok)  # last: a failure before it changes nothing
         ran = set(ok)
         outcomes = [r if i in ran else self._rejected(voxels[i]) for i, r in enumerate(results)]
-        new_states = [
-            SlotState(s.slot, s.sectors_seen + 1, s.keep, s.generation) if i in ran else s
-            for i, s in enumerate(states)
-        ]
+        new_states = [s.stepped(ran_wedges[i]) if i in ran else s for i, s in enumerate(states)]
         return outcomes, new_states
+
+    def _crop_wedges(self, states: list[SlotState]) -> list[int] | None:
+        """Each stream's wedge if the batch can run its dense part on crops, else None. A stream qualifies
+        once its slot's steps ran keep + 1 sectors, each in one wedge, and its next sector, predicted from
+        its last two (the sweep goes on in the same direction), falls in the wedge of the sector leaving its
+        BEV map (the only change to the map is then in that wedge). The step reports the true wedge; the
+        engine runs the whole map when one differs (`crop_misses`)."""
+        if self.step_module.crop is None or not self.bev_crop:
+            return None
+        keep, n = self.cfg.buffer_sectors, self.cfg.sectors_per_turn
+        for s in states:
+            w = s.wedges
+            if len(w) <= keep or min(w) < 0 or (2 * w[-1] - w[-2]) % n != w[0]:
+                return None
+        return [s.wedges[0] for s in states]
 
     @property
     def compiled_buckets(self) -> frozenset[tuple[int, Capacity]]:
@@ -221,18 +250,26 @@ class GraphStreamingDetector:
         return self._run
 
     @torch.inference_mode()
-    def run_fresh(self, points: list[Tensor]) -> list[SectorOutcome]:
-        """The step for len(points) fresh streams padded to their bucket, writing no slot (warm-up compiles
-        a bucket with it)."""
+    def run_fresh(self, points: list[Tensor], crop: bool = False) -> list[SectorOutcome]:
+        """The step for len(points) fresh streams padded to their bucket, on the whole map or (`crop`, where
+        the config has crops) on crops, writing no slot (warm-up compiles a bucket with it)."""
         for p in points:
             self.validate(p)
         fresh = [SlotState(self.slots.blank_row, 0, self.slots.keep, 0)] * len(points)  # reads the blank row
-        cand, stats, _ = self._forward(points, self.inputs(points, fresh, batch_bucket(len(points))))
+        wedges = [0] * len(points) if crop and self.step_module.crop is not None else None
+        inputs = self.inputs(points, fresh, batch_bucket(len(points)), wedges)
+        cand, stats, _ = self._forward(points, inputs, wedges is not None)
         return self._results(cand, stats[: len(points)], fresh)
 
-    def inputs(self, points: list[Tensor], states: list[SlotState], batch: int | None = None) -> list:
-        """The step's inputs: the sectors padded to (B, Np, C) and the B streams' state rows (B = `batch`, or
-        len(states); the padding streams read the blank row)."""
+    def inputs(
+        self,
+        points: list[Tensor],
+        states: list[SlotState],
+        batch: int | None = None,
+        wedges: list[int] | None = None,
+    ) -> list:
+        """The step's inputs: the sectors padded to (B, Np, C), the B streams' state rows (B = `batch`, or
+        len(states); the padding streams read the blank row) and the crops of `wedges` (or of wedge 0)."""
         b = len(states) if batch is None else batch
         width = max(int(p.shape[1]) for p in points)
         rows = row_bucket(self._points(points))
@@ -256,14 +293,25 @@ class GraphStreamingDetector:
             st.feats,
             st.cols,
             st.valid,
+            st.maps,
+            self._crop_bounds(wedges or [], b),
         ]
 
-    def _forward(self, points: list[Tensor], inputs: list) -> tuple[Tensor, Tensor, StepStates]:
-        """Run the step until its sites fit -> candidates (B, K, 10), stats (B, 3) on the host, new states."""
+    def _crop_bounds(self, wedges: list[int], batch: int) -> Tensor:
+        """(batch, 6) int64 on the device: each stream's crop bounds (wedge 0's for padding streams)."""
+        plan = self.step_module.crop
+        if plan is None:
+            return torch.zeros(batch, 6, dtype=torch.int64, device=self.device)
+        rows = plan.bounds[torch.tensor(wedges + [0] * (batch - len(wedges)), dtype=torch.int64)]
+        return rows.to(self.device, non_blocking=True)
+
+    def _forward(self, points: list[Tensor], inputs: list, crop: bool) -> tuple[Tensor, Tensor, StepStates]:
+        """Run the step (the dense part on crops, or the whole map) until its sites fit -> candidates
+        (B, K, 10), stats (B, len(STATS)) on the host, new states."""
         total = sum(int(p.shape[0]) for p in points)
         batch = int(inputs[0].shape[0])  # the batch bucket
         layout = self.step_module.host_layout(batch)
-        cap = self.planner.capacity(self._points(points), batch)
+        cap = replace(self.planner.capacity(self._points(points), batch), bev_crop=crop)
         run = self._runner(batch, cap)
         while True:
             with autocast(self.precision, self.device):
@@ -279,7 +327,7 @@ class GraphStreamingDetector:
                     cap,
                 )
             else:
-                cap = self.planner.capacity(self._points(points), batch)
+                cap = replace(self.planner.capacity(self._points(points), batch), bev_crop=crop)
                 run = self._runner(batch, cap)
                 log.info(
                     "graph step: sites did not fit (counts %s); running it again with %s",
@@ -324,13 +372,15 @@ def streaming_detector(
     slots: int = DEFAULT_SLOTS,
     precision: Precision = Precision.FP32,
     sector_points: int = 0,
+    bev_crop: bool = True,
 ) -> Detector:
     """The detector that runs `model` with `engine` in `precision` (a fixed-shape one with `slots`
-    stream-state slots, planned for sectors of at least `sector_points` points)."""
+    stream-state slots, planned for sectors of at least `sector_points` points, its dense part on crops
+    where `bev_crop`)."""
     if engine is Engine.EAGER:
         return StreamingDetector(model, precision=precision)
     compile = engine is Engine.GRAPH
-    return GraphStreamingDetector(model, sector_voxels, compile, slots, precision, sector_points)
+    return GraphStreamingDetector(model, sector_voxels, compile, slots, precision, sector_points, bev_crop)
 
 
 Detector = StreamingDetector | GraphStreamingDetector  # what the server runs

@@ -6,6 +6,9 @@ stream's state is a `SlotState` handle (its slot and how many sectors it has see
 inputs with `index_select` over the batch's rows and writes the new rows back with `index_copy_` once the
 whole step has succeeded.
 
+A slot also holds the head's maps of its stream's last step (the step's dense part runs on a crop around a
+new sector and keeps the rest: `model.graph.bev_crop`), and a handle the wedges of its last sectors.
+
 A handle with `sectors_seen == 0` is a fresh state: the step reads the blank row for it, never its slot. So a
 stream's slot is first written (and, on the CPU, its pages first touched) by the stream's first step, a reset
 is a new handle on the same slot with nothing written, and a failed step after a reset leaves the slot as it
@@ -36,6 +39,8 @@ class SlotState:
     sectors_seen: int
     keep: int  # buffer sectors the slot holds
     generation: int  # of the slot when taken: a handle kept after its release is refused
+    # the wedges (`model.graph.bev_crop`) of the last keep + 1 sectors its slot's steps ran, oldest first
+    wedges: tuple[int, ...] = ()
 
     @property
     def buffered_sectors(self) -> int:
@@ -43,6 +48,11 @@ class SlotState:
 
     def fresh(self) -> SlotState:
         return SlotState(self.slot, 0, self.keep, self.generation)
+
+    def stepped(self, wedge: int) -> SlotState:
+        """This state after a step that ran a sector of `wedge`."""
+        wedges = (*self.wedges, wedge)[-(self.keep + 1) :]
+        return SlotState(self.slot, self.sectors_seen + 1, self.keep, self.generation, wedges)
 
 
 @dataclass(frozen=True)
@@ -54,6 +64,7 @@ class GraphStreamState:
     feats: Tensor  # (keep, S, C) backbone outputs of the last `keep` sectors, oldest first
     cols: Tensor  # (keep, S, 2) int64 polar column (r, theta) of each row
     valid: Tensor  # (keep, S) bool
+    maps: Tensor  # (H, W, M) float32 the head's maps of the last step (zeros before one)
     sectors_seen: int
 
     @property
@@ -70,9 +81,10 @@ class StepStates:
     feats: Tensor  # (B, keep, S, C)
     cols: Tensor  # (B, keep, S, 2) int64
     valid: Tensor  # (B, keep, S) bool
+    maps: Tensor  # (B, H, W, M) float32
 
     def tensors(self) -> list[Tensor]:
-        return [*self.conv, *self.ssm, self.feats, self.cols, self.valid]
+        return [*self.conv, *self.ssm, self.feats, self.cols, self.valid, self.maps]
 
 
 class StateSlots:
@@ -96,6 +108,7 @@ class StateSlots:
             alloc(blank.feats),
             alloc(blank.cols),
             alloc(blank.valid),
+            alloc(blank.maps),
         )
         self._free = list(range(count - 1, -1, -1))  # pop() takes the lowest slot
         self._generation = [0] * count
@@ -168,6 +181,7 @@ class StateSlots:
             r.feats.index_select(0, rows),
             r.cols.index_select(0, rows),
             r.valid.index_select(0, rows),
+            r.maps.index_select(0, rows),
         )
 
     def scatter(self, slots: Tensor, new: StepStates, picks: Tensor) -> None:
@@ -186,6 +200,7 @@ class StateSlots:
             r.feats[row].clone(),
             r.cols[row].clone(),
             r.valid[row].clone(),
+            r.maps[row].clone(),
             state.sectors_seen,
         )
 
@@ -193,15 +208,18 @@ class StateSlots:
         """Store `tensors` in the state's slot -> the handle that reads them."""
         self.check([state])
         r, row = self.rows, state.slot
-        src = [*tensors.conv, *tensors.ssm, tensors.feats, tensors.cols, tensors.valid]
+        src = [*tensors.conv, *tensors.ssm, tensors.feats, tensors.cols, tensors.valid, tensors.maps]
         for dst, t in zip(r.tensors(), src, strict=True):
             dst[row] = t
         return SlotState(row, tensors.sectors_seen, self.keep, state.generation)
 
 
-def from_stream_state(state: StreamState, keep: int, sector_voxels: int, channels: int) -> GraphStreamState:
+def from_stream_state(
+    state: StreamState, keep: int, sector_voxels: int, channels: int, map_shape: tuple[int, int, int]
+) -> GraphStreamState:
     """An eager stream state in the graph step's shapes: `keep` buffer slots of `sector_voxels` rows, the
-    latest sector last; ValueError if a buffered sector has more rows."""
+    latest sector last, zero maps (H, W, M) (its next step runs the whole map); ValueError if a buffered
+    sector has more rows."""
     dev = state.mamba[0].conv.device
     feats = torch.zeros(keep, sector_voxels, channels, device=dev)
     cols = torch.zeros(keep, sector_voxels, 2, dtype=torch.int64, device=dev)
@@ -219,5 +237,6 @@ def from_stream_state(state: StreamState, keep: int, sector_voxels: int, channel
         feats=feats,
         cols=cols,
         valid=valid,
+        maps=torch.zeros(map_shape, device=dev),
         sectors_seen=state.sectors_seen,
     )

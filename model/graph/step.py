@@ -26,17 +26,19 @@ from model.geometry.rulebook import Plane
 from model.geometry.sparse_tensor import BATCH, THETA
 from model.geometry.sparse_tensor import R as R_AX
 from model.graph.bev import dense_cell_table, polar_to_bev
+from model.graph.bev_crop import crop_cells, crop_plan, merge_crop, wedge_of
 from model.graph.mamba import mamba_forward
 from model.graph.segments import Segments, frustum_segments, stream_segments
 from model.graph.sites import Sites, scatter_sum
 from model.graph.sparse_conv import conv_fixed, inverse_table, strided_sites, subm_table
 from model.graph.voxelize import voxelize_fixed
 from model.layers.decomposed import DecomposedDown, DecomposedUp
-from model.layers.head import peak_candidates
+from model.layers.head import HeadOutput, peak_candidates, rot_channels
 from model.layers.mamba import MambaState
 from model.layers.phim_block import PHiMBlock
 
-STATS = ("points_kept", "points_out_of_range", "voxels")  # per stream columns of the host tensor
+# per stream columns of the host tensor; wedge: the sector's wedge (`model.graph.bev_crop.wedge_of`)
+STATS = ("points_kept", "points_out_of_range", "voxels", "wedge")
 
 
 @dataclass(frozen=True)
@@ -46,6 +48,7 @@ class Capacity:
     points: int  # per stream
     voxels: int  # all streams together
     coarse: tuple[tuple[int, int], ...]  # per strided (kernel, stride) of `coarse_keys`: sites after (a), (c)
+    bev_crop: bool = False  # the dense part on each stream's crop (`model.graph.bev_crop`), else whole
 
 
 def coarse_keys(cfg: PHiMConfig) -> tuple[tuple[int, int], ...]:
@@ -149,6 +152,8 @@ class GraphStep(nn.Module):
         self.sector_voxels = sector_voxels  # S: voxel rows a stream keeps per buffered sector
         self.keys = coarse_keys(model.cfg)
         self.register_buffer("cell_table", dense_cell_table(model.to_bev), persistent=False)
+        self.crop = crop_plan(model.cfg, self.cell_table)  # None: this config's dense part runs whole
+        self.map_channels = sum(self._map_split())  # M: the head's map channels, HeadOutput's fields in order
 
     def host_layout(self, batch: int) -> HostLayout:
         top_k = min(
@@ -165,9 +170,12 @@ class GraphStep(nn.Module):
         buf_feats: Tensor,  # (B, keep, S, C)
         buf_cols: Tensor,  # (B, keep, S, 2) int64 polar column (r, theta) of each buffered row
         buf_valid: Tensor,  # (B, keep, S) bool
+        maps: Tensor,  # (B, H, W, M) float32 the head's maps of each stream's last step
+        crop: Tensor,  # (B, 6) int64 each stream's crop bounds (`CropPlan.bounds`), read if cap.bev_crop
         cap: Capacity,
-    ) -> tuple[Tensor, list[Tensor], list[Tensor], Tensor, Tensor, Tensor]:
-        """-> (host (n,) float32 laid out by `host_layout(B)`, new conv, ssm, buffer feats, cols, valid)."""
+    ) -> tuple[Tensor, list[Tensor], list[Tensor], Tensor, Tensor, Tensor, Tensor]:
+        """-> (host (n,) float32 laid out by `host_layout(B)`, new conv, ssm, buffer feats, cols, valid,
+        maps)."""
         m, cfg = self.model, self.cfg
         sites, x, kept, out_of_range = voxelize_fixed(m.voxelizer, points, counts, cap.voxels)
         local = frustum_segments(
@@ -197,7 +205,14 @@ class GraphStep(nn.Module):
             cols[..., 1].view(b, -1),
             valid.view(b, -1),
         )
-        cand = peak_candidates(m.head(m.bev_backbone(bev)), cfg.head, cfg.bev)
+        if cap.bev_crop:
+            assert self.crop is not None
+            part = self._head_maps(crop_cells(bev, crop[:, :2], self.crop.size))  # (B, M, h, w)
+            new_maps = merge_crop(maps, part, crop)  # (B, H, W, M)
+        else:
+            new_maps = self._head_maps(bev).permute(0, 2, 3, 1).contiguous()  # (B, H, W, M)
+        out = HeadOutput(*new_maps.permute(0, 3, 1, 2).split(self._map_split(), 1))
+        cand = peak_candidates(out, cfg.head, cfg.bev)
         packed = torch.cat(
             [
                 cand.boxes,
@@ -207,7 +222,9 @@ class GraphStep(nn.Module):
             ],
             -1,
         )
-        stats = torch.stack([kept, out_of_range, n_vox], 1).float()  # (B, 3)
+        per_wedge = cfg.grid.theta_bins // cfg.sectors_per_turn
+        wedge = wedge_of(sites.coords[:, THETA], sites.coords[:, BATCH], sites.valid, b, per_wedge)  # (B,)
+        stats = torch.stack([kept, out_of_range, n_vox, wedge], 1).float()  # (B, len(STATS))
         host = torch.cat([packed.reshape(-1), stats.reshape(-1), torch.stack(site_counts).float()])
         keep = cfg.buffer_sectors
         return (
@@ -217,7 +234,17 @@ class GraphStep(nn.Module):
             feats[:, feats.shape[1] - keep :],
             cols[:, cols.shape[1] - keep :],
             valid[:, valid.shape[1] - keep :],
+            new_maps,
         )
+
+    def _head_maps(self, bev: Tensor) -> Tensor:
+        """bev (B, C, H, W) -> the head's maps (B, M, H, W), HeadOutput's fields along M (float32)."""
+        out = self.model.head(self.model.bev_backbone(bev))
+        return torch.cat([out.heatmap, out.offset, out.z, out.log_dim, out.rot, out.iou], 1)
+
+    def _map_split(self) -> list[int]:
+        h = self.cfg.head
+        return [len(h.class_names), 2, 1, 3, rot_channels(h.heading), 1]
 
     def _sector_rows(self, sites: Sites, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Each stream's rows of the backbone output -> feats (B, S, C), cols (B, S, 2), valid (B, S), and its

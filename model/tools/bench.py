@@ -28,6 +28,7 @@ class ModelBench:
     threads: int
     batch: int  # streams per forward
     sector_points: int  # fixed/graph: the points every sector was padded to (0: its own bucket)
+    bev_crop: bool  # fixed/graph: the dense part on crops after a stream's first turn
     sectors_per_turn: int
     points_per_sector: list[int]
     iterations: int  # timed steps
@@ -67,11 +68,15 @@ def bench_model(
     engine: Engine = Engine.EAGER,
     precision: Precision = Precision.FP32,
     sector_points: int = 0,
+    bev_crop: bool = True,
 ) -> ModelBench:
     """Stream `turn` (N, C) split into sectors, `batch` streams at once, in `precision`; time every step
     after warm-up (a graph engine first learns its capacities from the turn, and compiles during the
-    warm-up; every sector padded to `sector_points` shares one bucket)."""
-    det = streaming_detector(model, engine, precision=precision, sector_points=sector_points)
+    warm-up; every sector padded to `sector_points` shares one bucket; `bev_crop`: its dense part on crops
+    after a stream's first turn)."""
+    det = streaming_detector(
+        model, engine, precision=precision, sector_points=sector_points, bev_crop=bev_crop
+    )
     dev = det.device
     cfg = model.cfg
     sectors = [s.to(dev) for s in split_turn(turn, cfg.sectors_per_turn)]
@@ -106,6 +111,7 @@ def bench_model(
         threads=torch.get_num_threads(),
         batch=batch,
         sector_points=sector_points,
+        bev_crop=bev_crop and engine is not Engine.EAGER,
         sectors_per_turn=len(sectors),
         points_per_sector=[int(s.shape[0]) for s in sectors],
         iterations=len(all_ms),

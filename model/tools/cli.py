@@ -92,6 +92,13 @@ def info(config: str, points: Path | None, as_json: bool) -> None:
     help="fixed/graph: pad every sector to this many points (one capacity bucket, one compile, as a server "
     "pads to its --sector-points); 0: each sector's own bucket.",
 )
+@click.option(
+    "--bev-crop/--whole-map",
+    default=True,
+    show_default=True,
+    help="fixed/graph: the BEV backbone and head on a crop around each new sector once a stream has run a "
+    "turn (docs/model.md), or on the whole map every step.",
+)
 @json_option
 def bench_model_cmd(
     config: str,
@@ -105,6 +112,7 @@ def bench_model_cmd(
     engine: Engine,
     precision: Precision,
     sector_points: int,
+    bev_crop: bool,
     as_json: bool,
 ) -> None:
     """Per-sector latency, sector buffer loaded: one sector at a time of a scan (fresh weights by default)."""
@@ -116,7 +124,14 @@ def bench_model_cmd(
         model.set_scan(scan)
     turn, source = load_turn(points, fallback_kitti=True)
     result = bench_model(
-        model, turn, batch, turns, engine=engine, precision=precision, sector_points=sector_points
+        model,
+        turn,
+        batch,
+        turns,
+        engine=engine,
+        precision=precision,
+        sector_points=sector_points,
+        bev_crop=bev_crop,
     )
     result = result.to_dict()
     result |= {"input": source}

@@ -1,0 +1,142 @@
+"""The BEV backbone and head over the part of the map a step changed: a crop, merged into the last maps.
+
+A stream's BEV map holds its last `buffer_sectors + 1` sectors. When a sector's wedge of the polar grid
+(theta bins [w * P, (w + 1) * P), P = theta_bins / sectors_per_turn) replaces the sector of the same wedge a
+turn before, the BEV input changes only in the cells that wedge's columns feed (`wedge_boxes`), and the head's
+maps only within `bev_halo` cells of them: the dense part's receptive field. The step then runs the backbone
+and head on a fixed-size crop around the wedge (its cells +- 2 halos, aligned to the backbone's total stride
+so that strided grids coincide, inside the map: zero padding only at the map's own edges) and keeps the crop's
+output within one halo of the wedge, where it equals the whole map's; elsewhere the stream's maps of its last
+step stay. `tiny` crops 108 x 108 of 128 x 128 cells, `paper` 320 x 320 of 468 x 468 (47 % of its 680 dense
+GFLOPs). The whole-map step is the reference twin; the engine (`model.graph.engine`) decides per batch and
+verifies the wedge the step reports.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from model.config import PHiMConfig
+
+SPANS, EMPTY = -1, -2  # a sector's wedge when its voxels span several wedges / it has none
+
+
+def _conv(lo: np.ndarray, hi: np.ndarray, k: int, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """The input interval each output of a k-wide, stride-s, padding k // 2 conv reads (1D)."""
+    n_out = (len(lo) + 2 * (k // 2) - k) // s + 1
+    start = np.arange(n_out) * s - k // 2
+    return lo[np.clip(start, 0, len(lo) - 1)], hi[np.clip(start + k - 1, 0, len(hi) - 1)]
+
+
+def bev_halo(cfg: PHiMConfig) -> int:
+    """Cells from an input cell to the farthest head output it reaches (the BEV backbone's and head's
+    receptive radius, from their layer structure: `model.layers.bev_backbone`, `model.layers.head`)."""
+    b, n = cfg.bev, max(cfg.bev.nx, cfg.bev.ny)
+    x = (np.arange(n), np.arange(n))  # each output's [lo, hi] input cells
+    ups = []
+    for layers, stride, up in zip(b.layer_nums, b.layer_strides, b.upsample_strides, strict=True):
+        x = _conv(*_conv(*x, 3, stride), 3, 1)  # the stage's projecting block (its 1x1 shortcut reads less)
+        for _ in range(2 * layers):
+            x = _conv(*x, 3, 1)
+        src = np.minimum(np.arange(n) // up, len(x[0]) - 1)  # deblock: kernel = stride
+        ups.append((x[0][src], x[1][src]))
+    lo, hi = np.minimum.reduce([u[0] for u in ups]), np.maximum.reduce([u[1] for u in ups])
+    for _ in range(1 + cfg.head.head_convs):  # shared conv, then each branch's
+        lo, hi = _conv(lo, hi, 3, 1)
+    cells = np.arange(n)
+    return int(max((cells - lo).max(), (hi - cells).max()))
+
+
+def wedge_boxes(cfg: PHiMConfig, cell_table: Tensor) -> list[tuple[int, int, int, int]]:
+    """Per wedge, the cells its polar columns feed: (y0, y1, x0, x1), half-open; cell_table (R * THETA, D)
+    from `model.graph.bev.dense_cell_table`."""
+    g, nx = cfg.grid, cfg.bev.nx
+    per = g.theta_bins // cfg.sectors_per_turn
+    table = cell_table.view(g.r_bins, g.theta_bins, -1)
+    boxes = []
+    for w in range(cfg.sectors_per_turn):
+        cells = table[:, w * per : (w + 1) * per].reshape(-1)
+        cells = cells[cells >= 0]
+        y, x = cells // nx, cells % nx
+        boxes.append((int(y.min()), int(y.max()) + 1, int(x.min()), int(x.max()) + 1))
+    return boxes
+
+
+@dataclass(frozen=True)
+class CropPlan:
+    """Where each wedge's crop lies: `size` (h, w) cells; bounds[w] = (crop y0, x0, kept y0, y1, x0, x1)."""
+
+    size: tuple[int, int]
+    bounds: Tensor  # (wedges, 6) int64, on the host
+    theta_per_wedge: int
+
+
+def _span(lo: int, hi: int, halo: int, align: int, length: int) -> tuple[int, int, int, int]:
+    """One axis of a wedge's cells [lo, hi): the crop (start, end) and the kept part (start, end)."""
+    start, end = max(0, lo - 2 * halo) // align * align, min(length, -(-(hi + 2 * halo) // align) * align)
+    return start, end, max(0, lo - halo), min(length, hi + halo)
+
+
+def crop_plan(cfg: PHiMConfig, cell_table: Tensor) -> CropPlan | None:
+    """The crops of `cfg`'s wedges, or None where a crop would not be smaller than the map or the map is
+    not a multiple of the backbone's total stride (a crop could not sit aligned at its far edge)."""
+    b = cfg.bev
+    align = int(np.prod(b.layer_strides))
+    if b.nx % align or b.ny % align:
+        return None
+    halo = bev_halo(cfg)
+    spans = [
+        (_span(y0, y1, halo, align, b.ny), _span(x0, x1, halo, align, b.nx))
+        for y0, y1, x0, x1 in wedge_boxes(cfg, cell_table)
+    ]
+    h = max(sy[1] - sy[0] for sy, _ in spans)
+    w = max(sx[1] - sx[0] for _, sx in spans)
+    if h * w >= b.ny * b.nx:
+        return None
+    rows = [  # the fixed-size crop slid inwards where the map's edge cuts it; it still holds the kept part
+        (min(sy[0], b.ny - h), min(sx[0], b.nx - w), sy[2], sy[3], sx[2], sx[3]) for sy, sx in spans
+    ]
+    per_wedge = cfg.grid.theta_bins // cfg.sectors_per_turn
+    return CropPlan((h, w), torch.tensor(rows, dtype=torch.int64), per_wedge)
+
+
+def crop_cells(bev: Tensor, origin: Tensor, size: tuple[int, int]) -> Tensor:
+    """bev (B, C, H, W), origin (B, 2) int64 (y0, x0) -> (B, C, h, w): each stream's crop."""
+    b = bev.shape[0]
+    ys = origin[:, :1] + torch.arange(size[0], device=bev.device)  # (B, h)
+    xs = origin[:, 1:2] + torch.arange(size[1], device=bev.device)  # (B, w)
+    batch = torch.arange(b, device=bev.device)[:, None, None]
+    return bev.permute(0, 2, 3, 1)[batch, ys[:, :, None], xs[:, None, :]].permute(0, 3, 1, 2)
+
+
+def merge_crop(maps: Tensor, part: Tensor, bounds: Tensor) -> Tensor:
+    """maps (B, H, W, M) the last step's, part (B, M, h, w) the crop's head maps, bounds (B, 6) -> (B, H, W,
+    M): part inside each stream's kept box, maps elsewhere."""
+    b, h, w = part.shape[0], part.shape[2], part.shape[3]
+    ys = bounds[:, :1] + torch.arange(h, device=maps.device)  # (B, h)
+    xs = bounds[:, 1:2] + torch.arange(w, device=maps.device)  # (B, w)
+    keep_y = (ys >= bounds[:, 2:3]) & (ys < bounds[:, 3:4])  # (B, h)
+    keep_x = (xs >= bounds[:, 4:5]) & (xs < bounds[:, 5:6])  # (B, w)
+    batch = torch.arange(b, device=maps.device)[:, None, None]
+    index = (batch, ys[:, :, None], xs[:, None, :])
+    keep = (keep_y[:, :, None] & keep_x[:, None, :])[..., None]  # (B, h, w, 1)
+    values = torch.where(keep, part.permute(0, 2, 3, 1).to(maps.dtype), maps[index])  # (B, h, w, M)
+    return maps.index_put(index, values)
+
+
+def wedge_of(sites_theta: Tensor, batch: Tensor, valid: Tensor, streams: int, per_wedge: int) -> Tensor:
+    """Each stream's wedge from its voxels' theta bins (V,), stream index (V,) and validity (V,) -> (B,)
+    int64: the wedge, SPANS or EMPTY."""
+    big = torch.iinfo(torch.int64).max
+    row = torch.where(valid, batch, streams)  # padding rows to a dump stream
+    lo = torch.full((streams + 1,), big, dtype=torch.int64, device=batch.device)
+    hi = torch.full((streams + 1,), -1, dtype=torch.int64, device=batch.device)
+    lo = lo.scatter_reduce(0, row, sites_theta, "amin")[:streams]
+    hi = hi.scatter_reduce(0, row, sites_theta, "amax")[:streams]
+    w_lo = torch.div(lo, per_wedge, rounding_mode="floor")
+    w_hi = torch.div(hi, per_wedge, rounding_mode="floor")
+    return torch.where(hi < 0, EMPTY, torch.where(w_lo == w_hi, w_lo, SPANS))
