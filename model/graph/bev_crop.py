@@ -7,9 +7,9 @@ maps only within `bev_halo` cells of them: the dense part's receptive field. The
 and head on a fixed-size crop around the wedge (its cells +- 2 halos, aligned to the backbone's total stride
 so that strided grids coincide, inside the map: zero padding only at the map's own edges) and keeps the crop's
 output within one halo of the wedge, where it equals the whole map's; elsewhere the stream's maps of its last
-step stay. `tiny` crops 108 x 108 of 128 x 128 cells, `paper` 320 x 320 of 468 x 468 (47 % of its 680 dense
-GFLOPs). The whole-map step is the reference twin; the engine (`model.graph.engine`) decides per batch and
-verifies the wedge the step reports.
+step stay. `tiny` crops 108 x 108 of 128 x 128 cells, `paper` 320 x 320 of 468 x 468 (47 % of the cells and
+of the 680 dense GFLOPs). The whole-map step is the reference twin; the engine (`model.graph.engine`) decides
+per batch and verifies the wedge the step reports.
 """
 
 from __future__ import annotations
