@@ -34,7 +34,7 @@ def warm_up(det: Detector, sectors: int, max_batch: int = 1, headroom: float = 1
     graph = isinstance(det, GraphStreamingDetector)
     if graph:
         det.calibrate(turn, headroom)
-        crops = [False, True] if det.step_module.crop is not None and det.bev_crop else [False]
+        crops = [False, True] if det.bev_crop else [False]
         for b in (b for b in BATCH_BUCKETS if b <= batch_bucket(max_batch)):
             for crop in crops:  # the whole map (a stream's first turn), and crops (every sector after it)
                 det.run_fresh([turn[i % len(turn)] for i in range(b)], crop)
@@ -90,7 +90,7 @@ def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
         "precision": det.precision.value,
         "sector_voxels": det.sector_voxels if graph else None,
         "sector_points": det.sector_points if graph else None,
-        "bev_crop": det.bev_crop and det.step_module.crop is not None if graph else None,
+        "bev_crop": det.bev_crop if graph else None,
         **slot_info(det),
         "classes": list(cfg.head.class_names),
         "sectors_per_turn": cfg.sectors_per_turn,

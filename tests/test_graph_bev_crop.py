@@ -16,7 +16,7 @@ from model.config import PHiMConfig, paper, tiny
 from model.data.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.fold_bn import fold_batchnorms
-from model.graph.bev_crop import bev_halo, crop_cells, merge_crop
+from model.graph.bev_crop import bev_halo, crop_cells, merge_crop, wedge_bins
 from model.graph.engine import GraphStreamingDetector
 from model.graph.step import GraphStep
 from model.sectors import split_turn
@@ -68,7 +68,7 @@ def test_a_crop_merged_into_the_last_maps_equals_the_whole_map(cfg: PHiMConfig):
     step = GraphStep(model, cfg.sector_voxels)
     plan = step.crop
     assert plan is not None
-    n_wedges, per = cfg.sectors_per_turn, plan.theta_per_wedge
+    n_wedges, per = cfg.sectors_per_turn, wedge_bins(cfg)
     table = step.cell_table.view(cfg.grid.r_bins, cfg.grid.theta_bins, -1)
     torch.manual_seed(0)
     bev = torch.rand(2, model.bev_backbone.stages[0][0].conv1.in_channels, cfg.bev.ny, cfg.bev.nx)

@@ -25,6 +25,11 @@ from model.config import PHiMConfig
 SPANS, EMPTY = -1, -2  # a sector's wedge when its voxels span several wedges / it has none
 
 
+def wedge_bins(cfg: PHiMConfig) -> int:
+    """P: the theta bins of one wedge (a sector's share of a turn)."""
+    return cfg.grid.theta_bins // cfg.sectors_per_turn
+
+
 def _conv(lo: np.ndarray, hi: np.ndarray, k: int, s: int) -> tuple[np.ndarray, np.ndarray]:
     """The input interval each output of a k-wide, stride-s, padding k // 2 conv reads (1D)."""
     n_out = (len(lo) + 2 * (k // 2) - k) // s + 1
@@ -54,8 +59,7 @@ def bev_halo(cfg: PHiMConfig) -> int:
 def wedge_boxes(cfg: PHiMConfig, cell_table: Tensor) -> list[tuple[int, int, int, int]]:
     """Per wedge, the cells its polar columns feed: (y0, y1, x0, x1), half-open; cell_table (R * THETA, D)
     from `model.graph.bev.dense_cell_table`."""
-    g, nx = cfg.grid, cfg.bev.nx
-    per = g.theta_bins // cfg.sectors_per_turn
+    g, nx, per = cfg.grid, cfg.bev.nx, wedge_bins(cfg)
     table = cell_table.view(g.r_bins, g.theta_bins, -1)
     boxes = []
     for w in range(cfg.sectors_per_turn):
@@ -72,7 +76,6 @@ class CropPlan:
 
     size: tuple[int, int]
     bounds: Tensor  # (wedges, 6) int64, on the host
-    theta_per_wedge: int
 
 
 def _span(lo: int, hi: int, halo: int, align: int, length: int) -> tuple[int, int, int, int]:
@@ -100,37 +103,38 @@ def crop_plan(cfg: PHiMConfig, cell_table: Tensor) -> CropPlan | None:
     rows = [  # the fixed-size crop slid inwards where the map's edge cuts it; it still holds the kept part
         (min(sy[0], b.ny - h), min(sx[0], b.nx - w), sy[2], sy[3], sx[2], sx[3]) for sy, sx in spans
     ]
-    per_wedge = cfg.grid.theta_bins // cfg.sectors_per_turn
-    return CropPlan((h, w), torch.tensor(rows, dtype=torch.int64), per_wedge)
+    return CropPlan((h, w), torch.tensor(rows, dtype=torch.int64))
+
+
+def _crop_index(origin: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
+    """origin (B, 2) int64 (y0, x0) -> the crops' (batch (B, 1, 1), rows (B, h, 1), columns (B, 1, w)) into a
+    (B, H, W, ...) map."""
+    ys = origin[:, :1] + torch.arange(size[0], device=origin.device)  # (B, h)
+    xs = origin[:, 1:2] + torch.arange(size[1], device=origin.device)  # (B, w)
+    batch = torch.arange(origin.shape[0], device=origin.device)[:, None, None]
+    return batch, ys[:, :, None], xs[:, None, :]
 
 
 def crop_cells(bev: Tensor, origin: Tensor, size: tuple[int, int]) -> Tensor:
     """bev (B, C, H, W), origin (B, 2) int64 (y0, x0) -> (B, C, h, w): each stream's crop."""
-    b = bev.shape[0]
-    ys = origin[:, :1] + torch.arange(size[0], device=bev.device)  # (B, h)
-    xs = origin[:, 1:2] + torch.arange(size[1], device=bev.device)  # (B, w)
-    batch = torch.arange(b, device=bev.device)[:, None, None]
-    return bev.permute(0, 2, 3, 1)[batch, ys[:, :, None], xs[:, None, :]].permute(0, 3, 1, 2)
+    return bev.permute(0, 2, 3, 1)[_crop_index(origin, size)].permute(0, 3, 1, 2)
 
 
 def merge_crop(maps: Tensor, part: Tensor, bounds: Tensor) -> Tensor:
     """maps (B, H, W, M) the last step's, part (B, M, h, w) the crop's head maps, bounds (B, 6) -> (B, H, W,
     M): part inside each stream's kept box, maps elsewhere."""
-    b, h, w = part.shape[0], part.shape[2], part.shape[3]
-    ys = bounds[:, :1] + torch.arange(h, device=maps.device)  # (B, h)
-    xs = bounds[:, 1:2] + torch.arange(w, device=maps.device)  # (B, w)
-    keep_y = (ys >= bounds[:, 2:3]) & (ys < bounds[:, 3:4])  # (B, h)
-    keep_x = (xs >= bounds[:, 4:5]) & (xs < bounds[:, 5:6])  # (B, w)
-    batch = torch.arange(b, device=maps.device)[:, None, None]
-    index = (batch, ys[:, :, None], xs[:, None, :])
-    keep = (keep_y[:, :, None] & keep_x[:, None, :])[..., None]  # (B, h, w, 1)
+    index = _crop_index(bounds[:, :2], (part.shape[2], part.shape[3]))
+    _, ys, xs = index  # (B, h, 1), (B, 1, w)
+    keep_y = (ys >= bounds[:, 2, None, None]) & (ys < bounds[:, 3, None, None])  # (B, h, 1)
+    keep_x = (xs >= bounds[:, 4, None, None]) & (xs < bounds[:, 5, None, None])  # (B, 1, w)
+    keep = (keep_y & keep_x)[..., None]  # (B, h, w, 1)
     values = torch.where(keep, part.permute(0, 2, 3, 1).to(maps.dtype), maps[index])  # (B, h, w, M)
     return maps.index_put(index, values)
 
 
 def wedge_of(sites_theta: Tensor, batch: Tensor, valid: Tensor, streams: int, per_wedge: int) -> Tensor:
-    """Each stream's wedge from its voxels' theta bins (V,), stream index (V,) and validity (V,) -> (B,)
-    int64: the wedge, SPANS or EMPTY."""
+    """Each stream's wedge from its voxels' theta bins (V,), stream index (V,) and validity (V,), with
+    `per_wedge` = `wedge_bins(cfg)` -> (B,) int64: the wedge, SPANS or EMPTY."""
     big = torch.iinfo(torch.int64).max
     row = torch.where(valid, batch, streams)  # padding rows to a dump stream
     lo = torch.full((streams + 1,), big, dtype=torch.int64, device=batch.device)

@@ -79,9 +79,10 @@ class GraphStreamingDetector:
         # one capacity bucket per batch bucket (the one a server compiles at warm-up); 0: the bucket of the
         # batch's largest sector
         self.sector_points = sector_points
-        # the dense part on crops around each new sector (`model.graph.bev_crop`) where the config has them;
-        # crop_misses: steps that ran crops for a sector outside its predicted wedge, then the whole map
-        self.bev_crop = bev_crop
+        # the dense part on crops around each new sector (`model.graph.bev_crop`), if asked and the config
+        # has crops; crop_misses: steps that ran crops for a sector outside its predicted wedge, then the
+        # whole map
+        self.bev_crop = bev_crop and self.step_module.crop is not None
         self.crop_misses = 0
         self.map_shape = (self.cfg.bev.ny, self.cfg.bev.nx, self.step_module.map_channels)
         blank = self._graph_state(self.reference.init_state(), sector_voxels)
@@ -205,7 +206,7 @@ class GraphStreamingDetector:
         its last two (the sweep goes on in the same direction), falls in the wedge of the sector leaving its
         BEV map (the only change to the map is then in that wedge). The step reports the true wedge; the
         engine runs the whole map when one differs (`crop_misses`)."""
-        if self.step_module.crop is None or not self.bev_crop:
+        if not self.bev_crop:
             return None
         keep, n = self.cfg.buffer_sectors, self.cfg.sectors_per_turn
         for s in states:
@@ -252,11 +253,11 @@ class GraphStreamingDetector:
     @torch.inference_mode()
     def run_fresh(self, points: list[Tensor], crop: bool = False) -> list[SectorOutcome]:
         """The step for len(points) fresh streams padded to their bucket, on the whole map or (`crop`, where
-        the config has crops) on crops, writing no slot (warm-up compiles a bucket with it)."""
+        the detector runs crops) on crops, writing no slot (warm-up compiles a bucket with it)."""
         for p in points:
             self.validate(p)
         fresh = [SlotState(self.slots.blank_row, 0, self.slots.keep, 0)] * len(points)  # reads the blank row
-        wedges = [0] * len(points) if crop and self.step_module.crop is not None else None
+        wedges = [0] * len(points) if crop and self.bev_crop else None
         inputs = self.inputs(points, fresh, batch_bucket(len(points)), wedges)
         cand, stats, _ = self._forward(points, inputs, wedges is not None)
         return self._results(cand, stats[: len(points)], fresh)

@@ -26,7 +26,7 @@ from model.geometry.rulebook import Plane
 from model.geometry.sparse_tensor import BATCH, THETA
 from model.geometry.sparse_tensor import R as R_AX
 from model.graph.bev import dense_cell_table, polar_to_bev
-from model.graph.bev_crop import crop_cells, crop_plan, merge_crop, wedge_of
+from model.graph.bev_crop import crop_cells, crop_plan, merge_crop, wedge_bins, wedge_of
 from model.graph.mamba import mamba_forward
 from model.graph.segments import Segments, frustum_segments, stream_segments
 from model.graph.sites import Sites, scatter_sum
@@ -222,8 +222,7 @@ class GraphStep(nn.Module):
             ],
             -1,
         )
-        per_wedge = cfg.grid.theta_bins // cfg.sectors_per_turn
-        wedge = wedge_of(sites.coords[:, THETA], sites.coords[:, BATCH], sites.valid, b, per_wedge)  # (B,)
+        wedge = wedge_of(sites.coords[:, THETA], sites.coords[:, BATCH], sites.valid, b, wedge_bins(cfg))
         stats = torch.stack([kept, out_of_range, n_vox, wedge], 1).float()  # (B, len(STATS))
         host = torch.cat([packed.reshape(-1), stats.reshape(-1), torch.stack(site_counts).float()])
         keep = cfg.buffer_sectors

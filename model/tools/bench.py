@@ -111,7 +111,7 @@ def bench_model(
         threads=torch.get_num_threads(),
         batch=batch,
         sector_points=sector_points,
-        bev_crop=bev_crop and engine is not Engine.EAGER,
+        bev_crop=isinstance(det, GraphStreamingDetector) and det.bev_crop,
         sectors_per_turn=len(sectors),
         points_per_sector=[int(s.shape[0]) for s in sectors],
         iterations=len(all_ms),
