@@ -123,8 +123,7 @@ for f in sorted(out.glob("bench_*.out")):
         r = json.loads(f.read_text())
     except ValueError:
         continue  # the step failed: steps.txt says how
-    crop = r["engine"] != "eager" and r["bev_crop"]
-    tflops = step_gflops[r["config"], crop] * r["batch"] / r["p50_ms"]  # GFLOP per ms = TFLOP/s
+    tflops = step_gflops[r["config"], r["bev_crop"]] * r["batch"] / r["p50_ms"]  # GFLOP per ms = TFLOP/s
     keys = ("config", "engine", "bev_crop", "precision", "batch", "p50_ms", "p90_ms", "peak_mem_mb")
     rows.append("| " + " | ".join(str(r[k]) for k in keys) + f" | {r['batch'] * 1e3 / r['p50_ms']:.0f} | {tflops:.1f} |")
 if rows:
