@@ -4,7 +4,8 @@
 # stages that each fit a 10-minute call, one process at a time (timings taken beside another GPU or compile
 # job are worthless, and a paper compile takes ~1 minute per bucket on 16 host cores).
 # Needs the KITTI scans 000000-000005 at ../shared/data/kitti_object/velodyne (or $PHIM_SAMPLES_DIR).
-# Usage: bash scripts/gpu_session.sh OUTDIR STAGE...   stages, in the order worth running them:
+# Usage: bash scripts/gpu_session.sh OUTDIR STAGE...   (with 15 minutes of device time: `bench profile`, then
+# `tests server_paper`; the profile after the bench finds the bench's kernels in inductor's cache)
 #   tests    tests/test_cuda.py (parity: kernels, eager, fixed and compiled graph step, bf16)    ~3 min
 #   profile  paper graph step, batch 1, bf16 then fp32: wall time against kernel time, top kernels ~3 min
 #   bench    phim bench model: paper eager, and graph (crops) in bf16 at batch 1 and 8             ~8 min
@@ -12,9 +13,10 @@
 #   server   tiny (shipped) served by the graph engine, bf16, max batch 32: zenoh closed-loop sweep 1..64
 #            vehicles, then open loop at sensor rate (compiles 6 batch buckets first, on the whole
 #            map: SERVE_BEV_CROP=1 compiles the crop forms too, twice the warm-up)                ~6 min
+#   server_paper  the same for `paper` (random weights: throughput only), max batch 8, sweep 1,4,8,16 ~9 min
 #   eval     the shipped model's accuracy in fp32 and bf16 on the GPU                              ~2 min
-# SERVE_DEVICE (cuda), SERVE_ENGINE (graph), SERVE_PRECISION (bf16) and SWEEP (1,4,16,64) change the server
-# stage, e.g. to try it on a CPU.
+# SERVE_CONFIG (tiny), SERVE_MAX_BATCH (32), SERVE_DEVICE (cuda), SERVE_ENGINE (graph), SERVE_PRECISION
+# (bf16) and SWEEP (1,4,16,64) change the server stage, e.g. to try it on a CPU.
 # Every step has a time limit; OUTDIR/steps.txt says how each ended, and the table comes last.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -40,9 +42,9 @@ bench() { # CONFIG BATCH ENGINE PRECISION SECONDS [--whole-map]: a graph run com
 
 serve_and_sweep() { # the worker as deployed, driven over zenoh by the load tester on the same host
     local dev=${SERVE_DEVICE:-cuda} engine=${SERVE_ENGINE:-graph} sweep=${SWEEP:-1,4,16,64} t0=$SECONDS
-    "$py" -m phim serve --device "$dev" --engine "$engine" --precision "${SERVE_PRECISION:-bf16}" \
-        --max-batch 32 --max-streams 128 "$( ((${SERVE_BEV_CROP:-0})) && echo --bev-crop || echo --no-bev-crop)" \
-        --queue-size 256 --port 18080 --zenoh-listen tcp/127.0.0.1:17447 >"$out/serve.log" 2>&1 &
+    "$py" -m phim serve --config "${SERVE_CONFIG:-tiny}" --device "$dev" --engine "$engine" \
+        --precision "${SERVE_PRECISION:-bf16}" --max-batch "${SERVE_MAX_BATCH:-32}" --max-streams 128 "$( ((${SERVE_BEV_CROP:-0})) && echo --bev-crop || echo --no-bev-crop)" \
+        --queue-size 256 --port 18080 --zenoh-listen tcp/127.0.0.1:17447 >"$out/serve_${SERVE_CONFIG:-tiny}.log" 2>&1 &
     local pid=$!
     until curl -sf localhost:18080/health/ready >/dev/null; do
         sleep 2
@@ -55,21 +57,22 @@ serve_and_sweep() { # the worker as deployed, driven over zenoh by the load test
     echo "server ready rc=0 $((SECONDS - t0))s" | tee -a "$out/steps.txt"
     local client=(--transport zenoh --zenoh-connect tcp/127.0.0.1:17447 --url http://127.0.0.1:18080 --synthetic
         --warmup 2 --duration 8 --keep-going --no-progress)
-    step loadtest_closed 200 "$py" -m phim loadtest "${client[@]}" --mode closed --sweep "$sweep" --json
-    step loadtest_open 200 "$py" -m phim loadtest "${client[@]}" --mode open --sweep "$sweep" --json
+    local tag=${SERVE_CONFIG:-tiny}
+    step "loadtest_${tag}_closed" 200 "$py" -m phim loadtest "${client[@]}" --mode closed --sweep "$sweep" --json
+    step "loadtest_${tag}_open" 200 "$py" -m phim loadtest "${client[@]}" --mode open --sweep "$sweep" --json
     kill -TERM $pid
     wait $pid
-    "$py" - "$out" <<'PY'
+    "$py" - "$out" "$tag" <<'PY'
 import json, pathlib, sys
 out = pathlib.Path(sys.argv[1])
-for mode in ("closed", "open"):
+for f in sorted(out.glob(f"loadtest_{sys.argv[2]}_*.out")):
     try:
-        r = json.loads((out / f"loadtest_{mode}.out").read_text())
+        r = json.loads(f.read_text())
     except ValueError:
         continue
     for s in r["steps"]:
         keys = ("vehicles", "achieved_sectors_per_s", "p50_ms", "p99_ms", "server_model_p50_ms", "send_lag_p99_ms")
-        print(mode, {k: s[k] for k in keys + ("sent", "answered", "errors", "lost")})
+        print(f.stem, {k: s[k] for k in keys + ("sent", "answered", "errors", "lost")})
 PY
 }
 
@@ -83,7 +86,7 @@ for stage in "$@"; do
         ;;
     profile)
         for precision in bf16 fp32; do
-            step "profile_paper_$precision" 180 env PYTHONPATH=. "$py" scripts/profile_step.py --config paper \
+            step "profile_paper_$precision" 240 env PYTHONPATH=. "$py" scripts/profile_step.py --config paper \
                 --device cuda --engine graph --precision $precision --sector-points $points \
                 --json "$out/profile_paper_$precision.json"
             cat "$out/profile_paper_$precision.out"
@@ -101,6 +104,9 @@ for stage in "$@"; do
         ;;
     server)
         serve_and_sweep
+        ;;
+    server_paper)
+        SERVE_CONFIG=paper SERVE_MAX_BATCH=8 SWEEP=${SWEEP:-1,4,8,16} serve_and_sweep
         ;;
     eval)
         for precision in fp32 bf16; do
