@@ -255,6 +255,7 @@ class Worker:
         log.info("worker %s ready (one forward about %.1f ms)", self.worker_id, self._batch_s * 1e3)
         while (batch := self._next_batch()) is not None:
             self._run_batch(batch)
+            del batch  # while it waits for the next batch, the loop holds no stream of this one
 
     def _next_batch(self) -> list[Pending] | None:
         """Block until a batch is due; None when closing and nothing is left."""
