@@ -42,9 +42,11 @@ bench() { # CONFIG BATCH ENGINE PRECISION SECONDS [--whole-map]: a graph run com
 
 serve_and_sweep() { # the worker as deployed, driven over zenoh by the load tester on the same host
     local dev=${SERVE_DEVICE:-cuda} engine=${SERVE_ENGINE:-graph} sweep=${SWEEP:-1,4,16,64} t0=$SECONDS
-    "$py" -m phim serve --config "${SERVE_CONFIG:-tiny}" --device "$dev" --engine "$engine" \
-        --precision "${SERVE_PRECISION:-bf16}" --max-batch "${SERVE_MAX_BATCH:-32}" --max-streams 128 "$( ((${SERVE_BEV_CROP:-0})) && echo --bev-crop || echo --no-bev-crop)" \
-        --queue-size 256 --port 18080 --zenoh-listen tcp/127.0.0.1:17447 >"$out/serve_${SERVE_CONFIG:-tiny}.log" 2>&1 &
+    local tag=${SERVE_CONFIG:-tiny} crop
+    crop=$( ((${SERVE_BEV_CROP:-0})) && echo --bev-crop || echo --no-bev-crop)
+    "$py" -m phim serve --config "$tag" --device "$dev" --engine "$engine" --precision "${SERVE_PRECISION:-bf16}" \
+        --max-batch "${SERVE_MAX_BATCH:-32}" --max-streams 128 "$crop" --queue-size 256 --port 18080 \
+        --zenoh-listen tcp/127.0.0.1:17447 >"$out/serve_$tag.log" 2>&1 &
     local pid=$!
     until curl -sf localhost:18080/health/ready >/dev/null; do
         sleep 2
@@ -57,7 +59,6 @@ serve_and_sweep() { # the worker as deployed, driven over zenoh by the load test
     echo "server ready rc=0 $((SECONDS - t0))s" | tee -a "$out/steps.txt"
     local client=(--transport zenoh --zenoh-connect tcp/127.0.0.1:17447 --url http://127.0.0.1:18080 --synthetic
         --warmup 2 --duration 8 --keep-going --no-progress)
-    local tag=${SERVE_CONFIG:-tiny}
     step "loadtest_${tag}_closed" 200 "$py" -m phim loadtest "${client[@]}" --mode closed --sweep "$sweep" --json
     step "loadtest_${tag}_open" 200 "$py" -m phim loadtest "${client[@]}" --mode open --sweep "$sweep" --json
     kill -TERM $pid
