@@ -201,3 +201,21 @@ def test_compiled_step_equals_eager_with_no_graph_break(model: PHiM):
     graph.calibrate(sectors)
     run_both(graph, eager, [[sectors[k % 4], sectors[(k + 2) % 4]] for k in range(5)])
     assert {cap.bev_crop for _, cap in graph.compiled_buckets} == {False, True}
+
+
+def test_compiled_detectors_of_configs_differing_in_a_constant_run_their_own_graphs(model: PHiM):
+    """The compiled step skips guards on its module tree (its weights are read live), not on the constants
+    it was traced with: a second detector whose config differs only in one (the candidates per step)
+    compiles its own graph and equals its eager twin (reusing the first's graph, it failed on the shapes)."""
+    head = model.cfg.head
+    doubled = dataclasses.replace(head, pre_nms_top_k=2 * head.pre_nms_top_k)
+    more = dataclasses.replace(model.cfg, head=doubled)
+    other = PHiM(more).eval()
+    other.load_state_dict(model.state_dict())
+    sectors = split_turn(torch.from_numpy(synthetic_turn(seed=4))[::4], model.cfg.sectors_per_turn)
+    most = max(len(s) for s in sectors)  # one bucket: one graph per detector
+    for m in (model, other):
+        graph = GraphStreamingDetector(m, compile=True, bev_crop=False, sector_points=most)
+        graph.calibrate(sectors)
+        run_both(graph, StreamingDetector(m), [[s] for s in sectors])
+        assert len(graph.compiled_buckets) == 1
