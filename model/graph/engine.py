@@ -95,8 +95,11 @@ class GraphStreamingDetector:
             cfg.recompile_limit = max(cfg.recompile_limit, 64)  # one graph per bucket
             # on CUDA each bucket's graph is captured as a CUDA graph and replayed (mode "reduce-overhead"):
             # its outputs are overwritten by the next replay, and by then the step has copied them out (the
-            # host tensor to the host, the new states into their slots)
-            options = {"triton.cudagraphs": self.device.type == "cuda", "guard_filter_fn": _live_module_tree}
+            # host tensor to the host, the new states into their slots); on the CPU the code that calls the
+            # graph's kernels is C++, not Python ("cpp_wrapper": 3-4 % off a tiny step, docs/benchmarks.md)
+            cuda = self.device.type == "cuda"
+            guards = _live_module_tree
+            options = {"triton.cudagraphs": cuda, "cpp_wrapper": not cuda, "guard_filter_fn": guards}
             self._run = torch.compile(self.step_module, fullgraph=True, dynamic=False, options=options)
         else:
             self._run = self.step_module
@@ -338,8 +341,7 @@ class GraphStreamingDetector:
     def _write_back(self, new: StepStates, slots: list[int], picks: list[int]) -> None:
         """Stream picks[k]'s new rows into slot slots[k]."""
         if picks:
-            dev = self.device
-            self.slots.scatter(torch.tensor(slots, device=dev), new, torch.tensor(picks, device=dev))
+            self.slots.scatter(slots, new, picks)
 
     def _rejected(self, voxels: int) -> SectorRejected:
         return SectorRejected(

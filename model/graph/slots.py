@@ -184,10 +184,15 @@ class StateSlots:
             r.maps.index_select(0, rows),
         )
 
-    def scatter(self, slots: Tensor, new: StepStates, picks: Tensor) -> None:
-        """Write new's rows `picks` (K,) into `slots` (K,): both int64 on the device."""
+    def scatter(self, slots: list[int], new: StepStates, picks: list[int]) -> None:
+        """Write new's rows picks[k] into slot slots[k]."""
+        dev = self.device
+        dst_rows = torch.tensor(slots).to(dev, non_blocking=True)
+        first = picks == list(range(len(picks)))  # the usual case: no copy of new's rows before the write
+        src_rows = None if first else torch.tensor(picks).to(dev, non_blocking=True)
         for dst, src in zip(self.rows.tensors(), new.tensors(), strict=True):
-            dst.index_copy_(0, slots, src.index_select(0, picks))
+            rows = src[: len(picks)] if src_rows is None else src.index_select(0, src_rows)
+            dst.index_copy_(0, dst_rows, rows)
 
     def read(self, state: SlotState) -> GraphStreamState:
         """A copy of the state's tensors (the blank row's for a fresh state)."""
