@@ -52,7 +52,7 @@ def slow_server(**settings: Any) -> Iterator[Served]:
         return real(points, states)
 
     det.step = slow_step  # type: ignore[method-assign]
-    with serve_both(det, max_batch=1, warmup_sectors=0, **settings) as s:
+    with serve_both(det, max_batch=1, warmup_sectors=1, **settings) as s:
         yield s
 
 
