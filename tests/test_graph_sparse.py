@@ -13,9 +13,10 @@ from model.config import VFEConfig, paper, tiny
 from model.data.samples import KITTI_000000
 from model.geometry.rulebook import Plane
 from model.geometry.sparse_tensor import SparseTensor, linear_key
+from model.graph.conv_cpu import conv_pairs
 from model.graph.search_cpu import sorted_search
 from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
-from model.graph.sparse_conv import conv_fixed, inverse_table, strided_sites, subm_table
+from model.graph.sparse_conv import conv_fixed, conv_gemm, inverse_table, strided_sites, subm_table
 from model.graph.voxelize import voxelize_fixed
 from model.layers.sparse_conv import SparseConv2d, SparseInverseConv2d
 from model.layers.voxelize import PolarVoxelizer
@@ -83,10 +84,14 @@ def test_sites_padding_rows() -> None:
     assert bool((coords[:, 1:] < torch.tensor(SHAPE)).all())
 
 
+CONVS = [conv_fixed, conv_gemm]  # on the CPU: the kernel over the entries naming a row; the implicit GEMM
+
+
+@pytest.mark.parametrize("conv_fn", CONVS)
 @pytest.mark.parametrize("plane", [Plane.RZ, Plane.THETA_Z])
 @pytest.mark.parametrize("kernel", [(3, 3), (3, 5), (3, 1)])
 @pytest.mark.parametrize("n", [0, 1, 150])
-def test_subm_conv_matches_rulebook_conv(plane: Plane, kernel: tuple[int, int], n: int) -> None:
+def test_subm_conv_matches_rulebook_conv(conv_fn, plane: Plane, kernel: tuple[int, int], n: int) -> None:
     cap = n + 13
     sites, coords = random_sites(n, cap, seed=n + kernel[1])
     conv = SparseConv2d(5, 6, kernel, (1, 1), plane, subm=True, bias=True)
@@ -94,7 +99,7 @@ def test_subm_conv_matches_rulebook_conv(plane: Plane, kernel: tuple[int, int], 
     with torch.no_grad():
         ref, _ = conv(SparseTensor(x[:n], coords, SHAPE, BATCH))
         table = subm_table(sites, kernel, plane)
-        out = conv_fixed(x, table, conv.weight, conv.bias)
+        out = conv_fn(x, table, conv.weight, conv.bias)
     assert table.shape == (cap, kernel[0] * kernel[1])
     assert bool((table[n:] == cap).all())  # padding rows read only the zero row
     torch.testing.assert_close(out[:n], ref.features, atol=1e-5, rtol=1e-5)
@@ -110,10 +115,11 @@ STRIDED = [
 ]
 
 
+@pytest.mark.parametrize("conv_fn", CONVS)
 @pytest.mark.parametrize(("plane", "kernel", "stride"), STRIDED)
 @pytest.mark.parametrize("n", [0, 7, 200])
 def test_strided_conv_and_inverse_match_rulebook_convs(
-    plane: Plane, kernel: tuple[int, int], stride: tuple[int, int], n: int
+    conv_fn, plane: Plane, kernel: tuple[int, int], stride: tuple[int, int], n: int
 ) -> None:
     cap = n + 11
     sites, coords = random_sites(n, cap, seed=3 * n + kernel[0])
@@ -124,8 +130,8 @@ def test_strided_conv_and_inverse_match_rulebook_convs(
         ref, rb = conv(SparseTensor(x[:n], coords, SHAPE, BATCH))
         ref_back = inv(ref, rb)
         out_sites, table = strided_sites(sites, kernel, stride, plane, out_cap=rb.num_out + 9)
-        out = conv_fixed(x, table, conv.weight, conv.bias)
-        back = conv_fixed(out, inverse_table(sites, out_sites, kernel, stride, plane), inv.weight, inv.bias)
+        out = conv_fn(x, table, conv.weight, conv.bias)
+        back = conv_fn(out, inverse_table(sites, out_sites, kernel, stride, plane), inv.weight, inv.bias)
     m = rb.num_out
     assert out_sites.spatial_shape == rb.out_shape
     assert int(out_sites.count) == m and not bool(out_sites.overflow)
@@ -134,6 +140,30 @@ def test_strided_conv_and_inverse_match_rulebook_convs(
     assert bool((out_sites.keys[m:] == SENTINEL).all()) and bool((table[m:] == cap).all())
     torch.testing.assert_close(out[:m], ref.features, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(back[:n], ref_back.features, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("bias", [True, False])
+def test_conv_kernel_equals_implicit_gemm_on_any_table(dtype: torch.dtype, bias: bool) -> None:
+    """The CPU kernel (entries naming a row only) is the implicit GEMM for any table: empty rows, empty
+    offsets, repeated input rows, an all-empty table."""
+    g = torch.Generator().manual_seed(11)
+    cap_in, cap_out, kk = 40, 30, 9
+    x = torch.randn(cap_in, 5, generator=g, dtype=dtype)
+    w = torch.randn(kk, 5, 7, generator=g, dtype=dtype)
+    b = torch.randn(7, generator=g, dtype=dtype) if bias else None
+    table = torch.randint(0, cap_in + 1, (cap_out, kk), generator=g)  # entry cap_in: none
+    table[torch.rand(cap_out, kk, generator=g) < 0.6] = cap_in  # mostly empty, as in a real step
+    table[3] = cap_in  # a row with no entry: the bias alone
+    table[:, 4] = cap_in  # an offset with no entry
+    table[5, :] = 2  # one input row through every offset
+    for t in (table, torch.full_like(table, cap_in)):
+        out = conv_pairs(x, t, w, b)
+        assert out.dtype == dtype and out.shape == (cap_out, 7)
+        torch.testing.assert_close(out, conv_gemm(x, t, w, b))
+    assert torch.equal(
+        conv_pairs(x, torch.full_like(table, cap_in), w, b)[0], b if bias else torch.zeros(7, dtype=dtype)
+    )
 
 
 def test_strided_overflow_is_flagged_and_finite() -> None:
