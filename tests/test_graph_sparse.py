@@ -16,6 +16,7 @@ from model.geometry.sparse_tensor import SparseTensor, linear_key
 from model.graph.conv_cpu import conv_pairs
 from model.graph.search_cpu import sorted_search
 from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
+from model.graph.sort_cpu import sort_keys_op
 from model.graph.sparse_conv import conv_fixed, conv_gemm, inverse_table, strided_sites, subm_table
 from model.graph.voxelize import voxelize_fixed
 from model.layers.sparse_conv import SparseConv2d, SparseInverseConv2d
@@ -74,6 +75,26 @@ def test_search_kernel_is_searchsorted(n_keys: int) -> None:
         for queries in (shifted, wild, wild.sort(dim=1).values):
             got = sorted_search(padded, queries.contiguous())
             assert torch.equal(got, torch.searchsorted(padded, queries)), (n_keys, queries)
+
+
+@pytest.mark.parametrize("n", [0, 1, 5000])
+@pytest.mark.parametrize("top", [1, 2**11, 2**22, 2**33, SENTINEL + 5])
+def test_sort_kernel_is_torch_stable_sort(n: int, top: int) -> None:
+    """The radix sort kernel gives torch.sort(stable=True)'s values and order: duplicates, SENTINEL padding,
+    keys of one to three passes and of every bit."""
+    g = torch.Generator().manual_seed(n + top % 97)
+    keys = torch.randint(0, top, (n,), generator=g)
+    keys[torch.rand(n, generator=g) < 0.3] = SENTINEL
+    keys[: n // 10] = keys[n // 10 : 2 * (n // 10)]  # duplicates, some of them SENTINEL
+    values, order = sort_keys_op(keys)
+    want_values, want_order = torch.sort(keys, stable=True)
+    assert torch.equal(values, want_values) and torch.equal(order, want_order)
+
+
+def test_sort_kernel_takes_negative_keys_through_torch() -> None:
+    keys = torch.tensor([3, -1, SENTINEL, -7, 3, 0])
+    values, order = sort_keys_op(keys)
+    assert values.tolist() == [-7, -1, 0, 3, 3, SENTINEL] and order.tolist() == [3, 1, 5, 0, 4, 2]
 
 
 def test_sites_padding_rows() -> None:

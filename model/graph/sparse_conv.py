@@ -20,6 +20,7 @@ from model.geometry.sparse_tensor import BATCH
 from model.graph.conv_cpu import conv_pairs
 from model.graph.search_cpu import search
 from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
+from model.graph.sort_cpu import sort_keys
 
 
 def _lookup(
@@ -92,7 +93,7 @@ def strided_sites(
     sites.cap."""
     kernel = as_kernel(kernel)
     out_shape = conv_out_shape(sites.spatial_shape, kernel, stride, plane)
-    cand, _ = torch.sort(_strided_candidates(sites, kernel, stride, plane, out_shape))  # (KK * cap,)
+    cand, _ = sort_keys(_strided_candidates(sites, kernel, stride, plane, out_shape))  # (KK * cap,)
     keys, _, count = compact_sorted(cand, out_cap)
     out = make_sites(keys, out_shape, sites.batch_size, count)
     pos, ok = [], []

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites, scatter_sum
+from model.graph.sort_cpu import sort_keys
 from model.graph.voxelize_cpu import grid_args, group_sorted, point_keys
 from model.layers.voxelize import PolarVoxelizer
 
@@ -65,7 +66,7 @@ def voxelize_fixed(
         key, base, n_kept, n_out = point_keys(points, counts, vox.point_features, *grid_args(vox))
     else:
         key, base, n_kept, n_out = _point_keys_torch(vox, points, counts)
-    sorted_key, order = torch.sort(key, stable=True)  # (B * Np,)
+    sorted_key, order = sort_keys(key)  # (B * Np,) stable
     if kernels:
         keys, vid, count, feats = group_sorted(sorted_key, order, base, cap)
     else:

@@ -7,7 +7,7 @@ the 2-core machine). Here:
 - `point_keys`: padded points (B, Np, C) -> each point's voxel key (SENTINEL unless kept), its base rows
   (raw columns, r, the three centre offsets, theta; `PolarVoxelizer._base` and `_bin`) and the points kept
   and out of range per stream, in one pass;
-- `group_sorted`: the keys sorted (torch.sort stays outside: it is fast) -> the compacted voxel keys, each
+- `group_sorted`: the keys sorted (outside, `model.graph.sort_cpu`) -> the compacted voxel keys, each
   point's voxel row and the VFE input rows (`PolarVoxelizer._features`), in two passes.
 
 Arithmetic is float32 step by step as in the eager voxelizer, and hypot and atan2 are aten's (called in
