@@ -30,7 +30,7 @@ from server.metrics import OK, Metrics
 from server.outcomes import sector_answer
 from server.scheduler import Wait, batch_fill, decide
 from server.streams import Pending, StreamEntry, StreamTable
-from server.warmup import model_info, warm_up
+from server.warmup import freeze_heap, model_info, warm_up
 
 log = logging.getLogger(__name__)
 
@@ -242,6 +242,7 @@ class Worker:
             self._batch_s = warm_up(
                 self._det, self.cfg.warmup_sectors, self.cfg.max_batch, self.cfg.capacity_headroom
             )
+            log.info("%d objects frozen out of the collector's reach", freeze_heap())
         except Exception as e:
             log.exception("loading or warming up the model failed; the worker will never be ready")
             with self._cond:

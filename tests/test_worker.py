@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import threading
 import time
 from collections.abc import Iterator
@@ -305,3 +306,12 @@ def test_queued_points_are_bounded_and_an_empty_queue_takes_any_sector(det, monk
         assert ok(running_one).context_sectors == ok(alone).context_sectors == 1
         later = [w.submit(sector_msg("c", 0, small)), w.submit(sector_msg("b", 0, big))]  # 4000: both fit
         assert [ok(f).context_sectors for f in later] == [1, 1]  # b was never started: seq 0 again
+
+
+def test_the_heap_alive_after_the_warm_up_is_frozen(det):
+    """Once ready, the worker has moved what is alive (model, modules, caches) out of the collector's reach,
+    so a full collection while serving walks only what serving allocates."""
+    gc.unfreeze()  # the heap this module's fixture froze (conftest): the worker's own freeze shows from 0
+    assert gc.get_freeze_count() == 0
+    with running(det):
+        assert gc.get_freeze_count() > 10_000
