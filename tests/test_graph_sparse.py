@@ -81,7 +81,7 @@ def test_search_kernel_is_searchsorted(n_keys: int) -> None:
 @pytest.mark.parametrize("top", [1, 2**11, 2**22, 2**33, SENTINEL + 5])
 def test_sort_kernel_is_torch_stable_sort(n: int, top: int) -> None:
     """The radix sort kernel gives torch.sort(stable=True)'s values and order: duplicates, SENTINEL padding,
-    keys of one to three passes and of every bit."""
+    keys of one to six passes (odd and even counts)."""
     g = torch.Generator().manual_seed(n + top % 97)
     keys = torch.randint(0, top, (n,), generator=g)
     keys[torch.rand(n, generator=g) < 0.3] = SENTINEL

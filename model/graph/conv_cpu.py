@@ -30,7 +30,7 @@ def _gather_pairs(table, none, x, rows, outs, ends):  # pragma: no cover - compi
         for o in range(cap_out):
             i = table[o, k]
             if i != none:
-                for c in range(x.shape[1]):  # an explicit loop: numba's row assignment runs 3x slower
+                for c in range(x.shape[1]):  # an explicit loop: numba's row assignment is slower
                     rows[p, c] = x[i, c]
                 outs[p] = o
                 p += 1
