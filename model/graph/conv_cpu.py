@@ -39,8 +39,12 @@ def _gather_pairs(table, none, x, rows, outs, ends):  # pragma: no cover - compi
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_rows(y, outs, out):  # pragma: no cover - compiled
-    """out[outs[p]] += y[p] for every p: y (P, C), outs (P,) int64, out (cap_out, C)."""
+def _add_rows(y, outs, bias, out):  # pragma: no cover - compiled
+    """out[o] = bias for every row, then out[outs[p]] += y[p] for every p: y (P, C), outs (P,) int64, bias
+    (C,), out (cap_out, C)."""
+    for o in range(out.shape[0]):
+        for c in range(out.shape[1]):
+            out[o, c] = bias[c]
     for p in range(y.shape[0]):
         o = outs[p]
         for c in range(y.shape[1]):
@@ -66,10 +70,9 @@ def conv_pairs(x: Tensor, table: Tensor, weight: Tensor, bias: Tensor | None) ->
         if end > first:
             torch.mm(rows[first:end], w[k], out=y[first:end])
         first = end
-    out = torch.zeros(cap_out, w.shape[2], dtype=cd)  # (cap_out, C_out)
-    if bias is not None:
-        out += bias.to(cd)
-    _add_rows(y.numpy(), outs[:n], out.numpy())
+    b = torch.zeros(w.shape[2], dtype=cd) if bias is None else bias.to(cd).contiguous()  # (C_out,)
+    out = torch.empty(cap_out, w.shape[2], dtype=cd)  # (cap_out, C_out)
+    _add_rows(y.numpy(), outs[:n], b.numpy(), out.numpy())
     return out.to(x.dtype)
 
 
