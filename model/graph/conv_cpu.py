@@ -4,7 +4,7 @@ row, a torch custom op: the fast twin of `model.graph.sparse_conv.conv_gemm` (th
 The implicit GEMM multiplies every (row, kernel offset) entry of a table, and most are empty: in a `tiny`
 step on KITTI 9-36 % name a row, so it does three to ten times the FLOPs the conv needs. Here one pass
 (numba) gathers the input rows of the entries naming a row, offset by offset; per offset one matmul by
-that offset's weight (aten, both threads); one pass adds the products into their output rows. The output
+that offset's weight (aten, both threads); one pass writes the bias and adds the products. The output
 keeps its fixed shape (cap_out, C_out); only the work inside varies with the data, which on the CPU costs
 no wait. On CUDA the implicit GEMM stays: there the entry count would be a data-dependent size (a host
 sync, or one more capacity). The sums run in float32 (float64 for float64 features) and come back in the
