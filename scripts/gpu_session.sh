@@ -15,6 +15,9 @@
 #            map: SERVE_BEV_CROP=1 compiles the crop forms too, twice the warm-up)                ~6 min
 #   server_paper  the same for `paper` (random weights: throughput only), max batch 8, sweep 1,4,8,16 ~9 min
 #   eval     the shipped model's accuracy in fp32 and bf16 on the GPU                              ~2 min
+#   train    the shipped model's next training phase on the simulator, 8 minutes, into OUTDIR/train;
+#            TRAIN_FROM=<that folder, carried back> resumes it (TRAIN_STEPS 20000 of batch TRAIN_BATCH 8
+#            at TRAIN_LR 1e-3, TRAIN_WORKERS 12 simulator processes, TRAIN_DEVICE cuda)         ~9 min
 # SERVE_CONFIG (tiny), SERVE_MAX_BATCH (32), SERVE_DEVICE (cuda), SERVE_ENGINE (graph), SERVE_PRECISION
 # (bf16) and SWEEP (1,4,16,64) change the server stage, e.g. to try it on a CPU.
 # Every step has a time limit; OUTDIR/steps.txt says how each ended, and the table comes last.
@@ -114,6 +117,18 @@ for stage in "$@"; do
             step "eval_tiny_$precision" 120 "$py" -m phim eval --checkpoint default --data sim --scans 100 \
                 --device cuda --precision $precision --json
         done
+        ;;
+    train)
+        run=$out/train
+        if [ -n "${TRAIN_FROM:-}" ] && [ ! -e "$run" ]; then cp -r "$TRAIN_FROM" "$run"; fi
+        resume=()
+        if [ -f "$run/state.pt" ]; then resume=(--resume); fi
+        step train 570 "$py" -m phim train --config tiny --data sim --device "${TRAIN_DEVICE:-cuda}" \
+            --batch-size "${TRAIN_BATCH:-8}" --workers "${TRAIN_WORKERS:-12}" --seed "${TRAIN_SEED:-19}" \
+            --steps "${TRAIN_STEPS:-20000}" --lr "${TRAIN_LR:-1e-3}" --direction-weight 1.0 \
+            --init "${TRAIN_INIT:-default}" --out "$run" --max-minutes "${TRAIN_MINUTES:-8}" --no-progress \
+            "${resume[@]}"
+        tail -2 "$run/metrics.csv"
         ;;
     *) echo "unknown stage $stage" >&2 && exit 2 ;;
     esac
