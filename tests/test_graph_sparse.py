@@ -187,6 +187,26 @@ def test_conv_kernel_equals_implicit_gemm_on_any_table(dtype: torch.dtype, bias:
     )
 
 
+@pytest.mark.parametrize("n", [0, 17, 30])
+def test_conv_kernel_centre_shortcut_equals_implicit_gemm(n: int) -> None:
+    """A submanifold table's centre column (row o -> row o for the first n rows, none after) takes the
+    addmm shortcut; a middle column that only looks so (a gap, a row past x's) takes the plain path: both
+    are the implicit GEMM."""
+    g = torch.Generator().manual_seed(12)
+    cap_in, cap_out, kk = 30, 34, 9
+    x = torch.randn(cap_in, 5, generator=g)
+    w = torch.randn(kk, 5, 7, generator=g)
+    b = torch.randn(7, generator=g)
+    table = torch.randint(0, cap_in + 1, (cap_out, kk), generator=g)
+    table[torch.rand(cap_out, kk, generator=g) < 0.6] = cap_in
+    table[:, kk // 2] = cap_in
+    table[:n, kk // 2] = torch.arange(n)
+    gap = table.clone()
+    gap[n + 1 :, kk // 2] = torch.arange(n + 1, cap_out).clamp_max(cap_in)  # identity after a hole
+    for t in (table, gap):
+        torch.testing.assert_close(conv_pairs(x, t, w, b), conv_gemm(x, t, w, b))
+
+
 def test_strided_overflow_is_flagged_and_finite() -> None:
     sites, coords = random_sites(200, 220, seed=5)
     conv = SparseConv2d(4, 6, 3, (2, 2), Plane.RZ, bias=True)
