@@ -13,7 +13,7 @@ from model.config import VFEConfig, paper, tiny
 from model.data.samples import KITTI_000000
 from model.geometry.rulebook import Plane
 from model.geometry.sparse_tensor import SparseTensor, linear_key
-from model.graph.conv_cpu import conv_pairs
+from model.graph.conv_cpu import _identity_prefix, conv_pairs
 from model.graph.search_cpu import sorted_search
 from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
 from model.graph.sort_cpu import sort_keys_op
@@ -203,6 +203,8 @@ def test_conv_kernel_centre_shortcut_equals_implicit_gemm(n: int) -> None:
     table[:n, kk // 2] = torch.arange(n)
     gap = table.clone()
     gap[n + 1 :, kk // 2] = torch.arange(n + 1, cap_out).clamp_max(cap_in)  # identity after a hole
+    assert _identity_prefix(table.numpy(), cap_in, kk // 2) == n  # the shortcut is taken
+    assert _identity_prefix(gap.numpy(), cap_in, kk // 2) == (n if n + 1 >= cap_in else -1)
     for t in (table, gap):
         torch.testing.assert_close(conv_pairs(x, t, w, b), conv_gemm(x, t, w, b))
 
