@@ -1,6 +1,7 @@
 """Latency percentiles from an HdrHistogram (the `hdrhistogram` package, `hdrh`), as wrk2, k6 and
 perf_analyzer's peers report them: values recorded in microseconds with 3 significant digits, so every
-percentile is within 0.1 % of a recorded value (plus 1 us), whatever the spread."""
+percentile is within 0.1 % of a recorded value (plus 1 us), whatever the spread. The max is exact (to the
+recorded microsecond): the histogram would give the top of its bucket, up to 0.1 % above it."""
 
 from __future__ import annotations
 
@@ -15,11 +16,16 @@ DIGITS = 3
 PERCENTILES = {"p50": 50.0, "p90": 90.0, "p99": 99.0, "p999": 99.9}
 
 
+def to_us(value_ms: float) -> int:
+    """A latency in ms as the whole microseconds the histogram records (negative counts as 0, clamped)."""
+    return min(HIGHEST_US, max(0, round(value_ms * 1e3)))
+
+
 def histogram(values_ms: Iterable[float]) -> HdrHistogram:
-    """An HdrHistogram of latencies given in milliseconds (negative values count as 0)."""
+    """An HdrHistogram of latencies given in milliseconds."""
     h = HdrHistogram(LOWEST_US, HIGHEST_US, DIGITS)
     for v in values_ms:
-        h.record_value(min(HIGHEST_US, max(0, round(v * 1e3))))
+        h.record_value(to_us(v))
     return h
 
 
@@ -32,9 +38,10 @@ def percentile_ms(h: HdrHistogram, q: float) -> float:
 
 def summary_ms(values_ms: Iterable[float]) -> dict[str, float]:
     """p50, p90, p99, p999, max and mean (ms) of the values; NaN when there are none."""
-    h = histogram(values_ms)
+    values = list(values_ms)
+    h = histogram(values)
     out = {name: percentile_ms(h, q) for name, q in PERCENTILES.items()}
-    empty = h.get_total_count() == 0
-    out["max"] = math.nan if empty else h.get_max_value() / 1e3
+    empty = not values
+    out["max"] = math.nan if empty else max(map(to_us, values)) / 1e3
     out["mean"] = math.nan if empty else h.get_mean_value() / 1e3
     return out
