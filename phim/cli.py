@@ -53,6 +53,9 @@ COMMANDS: dict[str, Entry | Group] = {
         "Benchmarks (a table, or JSON with --json, at the end).",
         {
             "model": Entry("model.tools.cli:bench_model_cmd", "Per-sector latency, sector buffer loaded."),
+            "engines": Entry(
+                "model.tools.cli:bench_engines_cmd", "Engines against each other in one process: ratios."
+            ),
             "ops": Entry("model.tools.cli:bench_ops_cmd", "Torch ops and host syncs of one streaming step."),
             "sim": Entry("model.data.sim.cli:bench_sim_cmd", "Simulator throughput, single-threaded."),
             "server": Entry("clients.bench.server:bench_server_cmd", "The server's own overhead per sector."),

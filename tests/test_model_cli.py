@@ -1,4 +1,4 @@
-"""`phim model info` and `phim bench model` as commands (their numbers are benchmarks, not checked here)."""
+"""`phim model info`, `phim bench model` and `phim bench engines` as commands (their numbers are benchmarks, not checked here)."""
 
 from __future__ import annotations
 
@@ -40,6 +40,25 @@ def test_bench_model_names_a_missing_checkpoint() -> None:
     result = CliRunner().invoke(app, ["bench", "model", "--checkpoint", "no/such.pt", "--turns", "1"])
     assert result.exit_code != 0
     assert "no/such.pt" in str(result.exception)
+
+
+def test_bench_engines_alternates_the_engines_and_divides_by_the_first() -> None:
+    args = ["bench", "engines", "--config", "tiny", "--checkpoint", "default", "--engines", "eager,fixed"]
+    result = CliRunner().invoke(app, [*args, "--rounds", "3", "--json"])
+    assert result.exit_code == 0, result.output
+    bench = json.loads(result.output.strip().splitlines()[-1])
+    assert bench["engines"] == ["eager", "fixed"] and bench["rounds"] == 3 and bench["device"] == "cpu"
+    p50 = bench["p50_ms"]
+    assert 0 < p50["fixed"] <= bench["p90_ms"]["fixed"] and 0 < p50["eager"] <= bench["p90_ms"]["eager"]
+    assert bench["ratio_p50"] == {"eager": 1.0, "fixed": pytest.approx(p50["fixed"] / p50["eager"], abs=2e-3)}
+    assert bench["round_ratios"]["eager"] == [1.0] * 3 and len(bench["round_ratios"]["fixed"]) == 3
+    assert all(r > 0 for r in bench["round_ratios"]["fixed"])
+
+
+@pytest.mark.parametrize("engines", ["graph", "eager,eager", "eager,jit"])
+def test_bench_engines_names_a_bad_engine_list(engines: str) -> None:
+    result = CliRunner().invoke(app, ["bench", "engines", "--engines", engines])
+    assert result.exit_code == 2 and "--engines" in result.output and "two or more different" in result.output
 
 
 def test_bench_ops_credits_every_op_to_a_model_function() -> None:

@@ -1,4 +1,6 @@
-"""`phim bench model`: per-sector latency of the streaming model with its buffer loaded."""
+"""`phim bench model`: per-sector latency of the streaming model with its buffer loaded; `phim bench engines`:
+engines against each other in one process (this machine's speed drifts between processes by more than the
+differences sought, so a ratio is measured in alternating turns of one run)."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ from torch import Tensor
 
 from model.config import Engine, Precision
 from model.detector import PHiM
-from model.graph.engine import GraphStreamingDetector, SectorRejected, streaming_detector
+from model.graph.engine import Detector, GraphStreamingDetector, SectorRejected, streaming_detector
 from model.ops.scan import resolve_scan
 from model.precision import autocast
 from model.sectors import split_turn
@@ -43,6 +45,10 @@ class ModelBench:
         return asdict(self)
 
 
+def _device_name(dev: torch.device) -> str:
+    return str(dev) if dev.type == "cpu" else torch.cuda.get_device_name(dev)
+
+
 def _sync(dev: torch.device) -> None:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
@@ -57,6 +63,31 @@ def _full_turn_peak(model: PHiM, sectors: list[Tensor], precision: Precision) ->
         model.forward_turn([s.to(dev) for s in sectors])
     _sync(dev)
     return torch.cuda.max_memory_allocated(dev) / 2**20
+
+
+class _Streams:
+    """`batch` streams of one detector, each stepped through the same sectors (a graph detector first learns
+    its capacities from them)."""
+
+    def __init__(self, det: Detector, sectors: list[Tensor], batch: int = 1):
+        if isinstance(det, GraphStreamingDetector):
+            det.calibrate(sectors)
+        self.det, self.sectors, self.batch = det, sectors, batch
+        self.states = [det.init_state() for _ in range(batch)]
+
+    def turn(self) -> list[float]:
+        """Step every sector once; the ms of each step."""
+        dev, out = self.det.device, []
+        for sector in self.sectors:
+            _sync(dev)
+            t0 = time.perf_counter()
+            results, self.states = self.det.step([sector] * self.batch, self.states)
+            _sync(dev)
+            rejected = [r for r in results if isinstance(r, SectorRejected)]
+            if rejected:  # a step that skipped a stream's sector would be timed as if it had run
+                raise ValueError(rejected[0].message)
+            out.append((time.perf_counter() - t0) * 1e3)
+        return out
 
 
 def bench_model(
@@ -80,23 +111,14 @@ def bench_model(
     dev = det.device
     cfg = model.cfg
     sectors = [s.to(dev) for s in split_turn(turn, cfg.sectors_per_turn)]
-    if isinstance(det, GraphStreamingDetector):
-        det.calibrate(sectors)
-    states = [det.init_state() for _ in range(batch)]
+    run = _Streams(det, sectors, batch)
     times: dict[int, list[float]] = {k: [] for k in range(len(sectors))}
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     for t in range(warmup_turns + turns):
-        for k, sector in enumerate(sectors):
-            _sync(dev)
-            t0 = time.perf_counter()
-            results, states = det.step([sector] * batch, states)
-            _sync(dev)
-            rejected = [r for r in results if isinstance(r, SectorRejected)]
-            if rejected:  # a step that skipped a stream's sector would be timed as if it had run
-                raise ValueError(rejected[0].message)
+        for k, ms in enumerate(run.turn()):
             if t >= warmup_turns:
-                times[k].append((time.perf_counter() - t0) * 1e3)
+                times[k].append(ms)
     if dev.type == "cuda":
         peak = torch.cuda.max_memory_allocated(dev) / 2**20
     else:
@@ -104,7 +126,7 @@ def bench_model(
     all_ms = sorted(x for v in times.values() for x in v)
     return ModelBench(
         config=cfg.name,
-        device=str(dev) if dev.type == "cpu" else torch.cuda.get_device_name(dev),
+        device=_device_name(dev),
         engine=engine.value,
         precision=precision.value,
         scan=resolve_scan(cfg.backbone.mamba.scan, dev).value,
@@ -121,4 +143,65 @@ def bench_model(
         per_sector_p50_ms=[round(statistics.median(v), 2) for v in times.values()],
         peak_mem_mb=round(peak, 1),
         full_turn_peak_mem_mb=_full_turn_peak(model, sectors, precision),
+    )
+
+
+@dataclass(frozen=True)
+class EngineComparison:
+    config: str
+    device: str
+    precision: str
+    threads: int
+    engines: list[str]  # the first is the one the others are divided by
+    points_per_sector: list[int]
+    rounds: int  # timed turns of each engine, alternating (the order reversed every other round)
+    p50_ms: dict[str, float]
+    p90_ms: dict[str, float]
+    ratio_p50: dict[str, float]  # each engine's p50 / the first's
+    round_ratios: dict[str, list[float]]  # per round: its turn's p50 / the first engine's turn's p50
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def compare_engines(
+    model: PHiM,
+    turn: Tensor,
+    engines: list[Engine],
+    rounds: int = 10,
+    warmup_turns: int = 2,
+    precision: Precision = Precision.FP32,
+) -> EngineComparison:
+    """Stream `turn` through a detector of each engine (one stream each, same weights) in alternating turns,
+    after `warmup_turns` of each (compiles there); the ratios of their p50s, overall and per round."""
+    if len(engines) < 2 or len(set(engines)) != len(engines):
+        raise ValueError(f"engines: {[e.value for e in engines]}; expected two or more different engines")
+    sectors = [s.to(model.device) for s in split_turn(turn, model.cfg.sectors_per_turn)]
+    runs = {e: _Streams(streaming_detector(model, e, precision=precision), sectors) for e in engines}
+    for _ in range(warmup_turns):
+        for run in runs.values():
+            run.turn()
+    times: dict[Engine, list[list[float]]] = {e: [] for e in engines}
+    for r in range(rounds):
+        for e in engines if r % 2 == 0 else engines[::-1]:
+            times[e].append(runs[e].turn())
+    flat = {e: sorted(x for t in ts for x in t) for e, ts in times.items()}
+    p50 = {e: statistics.median(v) for e, v in flat.items()}
+    base = engines[0]
+    per_round = {
+        e: [statistics.median(a) / statistics.median(b) for a, b in zip(ts, times[base], strict=True)]
+        for e, ts in times.items()
+    }
+    return EngineComparison(
+        config=model.cfg.name,
+        device=_device_name(model.device),
+        precision=precision.value,
+        threads=torch.get_num_threads(),
+        engines=[e.value for e in engines],
+        points_per_sector=[int(s.shape[0]) for s in sectors],
+        rounds=rounds,
+        p50_ms={e.value: round(v, 2) for e, v in p50.items()},
+        p90_ms={e.value: round(v[int(0.9 * (len(v) - 1))], 2) for e, v in flat.items()},
+        ratio_p50={e.value: round(p50[e] / p50[base], 3) for e in engines},
+        round_ratios={e.value: [round(x, 3) for x in v] for e, v in per_round.items()},
     )

@@ -158,6 +158,60 @@ def bench_model_cmd(
 
 
 @click.command()
+@config_option("tiny")
+@points_option(kitti_first=True)
+@device_option()
+@threads_option
+@checkpoint_option(None)
+@click.option(
+    "--engines",
+    default="eager,graph",
+    show_default=True,
+    help="Comma-separated engines (eager, fixed, graph); the others' ratios are to the first's.",
+)
+@click.option("--rounds", type=click.IntRange(1), default=10, show_default=True, help="Timed turns of each.")
+@precision_option
+@json_option
+def bench_engines_cmd(
+    config: str,
+    points: Path | None,
+    device: str,
+    threads: int,
+    checkpoint: str | None,
+    engines: str,
+    rounds: int,
+    precision: Precision,
+    as_json: bool,
+) -> None:
+    """Engines against each other in one process, alternating turns: p50s and their ratios."""
+    from model.tools.bench import compare_engines
+
+    names = [e.strip() for e in engines.split(",")]
+    if len(set(names)) < 2 or len(set(names)) != len(names) or not set(names) <= {e.value for e in Engine}:
+        raise click.BadParameter(
+            f"{engines!r}: expected two or more different engines of {[e.value for e in Engine]}",
+            param_hint="--engines",
+        )
+    logging.basicConfig(level=logging.WARNING)
+    model = load_model(config, checkpoint, device, threads)
+    turn, source = load_turn(points, fallback_kitti=True)
+    result = compare_engines(model, turn, [Engine(n) for n in names], rounds, precision=precision).to_dict()
+    result |= {"input": source}
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    click.echo(f"input: {source}; {result['config']} on {result['device']}, {result['threads']} threads")
+    base = result["engines"][0]
+    click.echo(f"\n| engine | p50 ms | p90 ms | p50 / {base} | per round (min-max) |\n|---|---|---|---|---|")
+    for e in result["engines"]:
+        per = result["round_ratios"][e]
+        click.echo(
+            f"| {e} | {result['p50_ms'][e]} | {result['p90_ms'][e]} | {result['ratio_p50'][e]} "
+            f"| {min(per):.3f}-{max(per):.3f} |"
+        )
+
+
+@click.command()
 @config_option("paper")
 @points_option(kitti_first=True)
 @device_option("cpu")
