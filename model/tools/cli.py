@@ -187,7 +187,7 @@ def bench_engines_cmd(
     from model.tools.bench import compare_engines
 
     names = [e.strip() for e in engines.split(",")]
-    if len(set(names)) < 2 or len(set(names)) != len(names) or not set(names) <= {e.value for e in Engine}:
+    if len(names) < 2 or len(set(names)) != len(names) or not set(names) <= {e.value for e in Engine}:
         raise click.BadParameter(
             f"{engines!r}: expected two or more different engines of {[e.value for e in Engine]}",
             param_hint="--engines",
