@@ -1,4 +1,5 @@
-"""`phim model info`, `phim bench model` and `phim bench engines` as commands (their numbers are benchmarks, not checked here)."""
+"""`phim model info`, `phim bench model` and `phim bench engines` as commands (their numbers are
+benchmarks, not checked here)."""
 
 from __future__ import annotations
 
