@@ -13,6 +13,7 @@ import torch
 
 from contract import POINT_FIELDS, REQUIRED_FIELDS
 from model.data.synthetic import synthetic_turn
+from model.geometry.nms_cpu import compile_kernels as compile_nms_kernels
 from model.graph.buckets import BATCH_BUCKETS, batch_bucket
 from model.graph.engine import Detector, GraphStreamingDetector
 from model.ops.scan import resolve_scan
@@ -28,7 +29,9 @@ def warm_up(det: Detector, sectors: int, max_batch: int = 1, headroom: float = 1
     `max_batch`, on the whole map and on crops (a compiled one compiles them here, before the worker is
     ready), and gives back the one stream-state slot it used; its capacities are the turn's times
     `headroom` (real scans have more sites per point than the synthetic turn), and it is sealed: no
-    compiling after the warm-up."""
+    compiling after the warm-up. Before any forward, the CPU NMS kernels are compiled (or loaded from
+    numba's cache): whether a forward reaches NMS depends on the weights and the turn."""
+    compile_nms_kernels()
     if sectors <= 0:
         return 0.1
     turn = split_turn(torch.from_numpy(synthetic_turn(seed=0)), det.cfg.sectors_per_turn)  # list of (N_k, 4)
