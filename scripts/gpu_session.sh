@@ -124,7 +124,7 @@ for stage in "$@"; do
         resume=()
         if [ -f "$run/state.pt" ]; then resume=(--resume); fi
         step train 570 "$py" -m phim train --config tiny --data sim --device "${TRAIN_DEVICE:-cuda}" \
-            --batch-size "${TRAIN_BATCH:-8}" --workers "${TRAIN_WORKERS:-12}" --seed "${TRAIN_SEED:-20}" \
+            --batch-size "${TRAIN_BATCH:-8}" --workers "${TRAIN_WORKERS:-12}" --seed "${TRAIN_SEED:-22}" \
             --steps "${TRAIN_STEPS:-20000}" --lr "${TRAIN_LR:-1e-3}" --direction-weight 1.0 \
             --init "${TRAIN_INIT:-default}" --out "$run" --max-minutes "${TRAIN_MINUTES:-8}" --no-progress \
             "${resume[@]}"
