@@ -11,7 +11,8 @@
 # Environment: STEPS (3900), FT_STEPS (2600), FT2_STEPS (3000), FT3_STEPS (6000), FT4_STEPS (4000),
 # FT5_STEPS (2500), FT6_STEPS (1600), FT7_STEPS (2500), FT8_STEPS (2500), FT9_STEPS (2500), FT10_STEPS (2500),
 # FT11_STEPS (2500), FT12_STEPS (2500), FT13_STEPS (2500), FT14_STEPS (2500), FT15_STEPS (1200),
-# BATCH (2 scans per step), FT15_BATCH (4), LR (2e-3), FT_LR (1e-3), DEVICE (auto), WORKERS (1), THREADS (0 = torch default).
+# BATCH (2 scans per step), FT15_BATCH (4), LR (2e-3), FT_LR (1e-3), DEVICE (auto), WORKERS (1),
+# THREADS (0 = torch default).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
