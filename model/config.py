@@ -19,10 +19,11 @@ POINT_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity", "elongation")
 class ScanImpl(enum.StrEnum):
     """Which selective-scan implementation the Mamba layers use."""
 
-    AUTO = "auto"  # TRITON on a CUDA device where Triton is installed, else CHUNKED
+    AUTO = "auto"  # TRITON on a CUDA device where Triton is installed, NUMBA on the CPU, else CHUNKED
     REFERENCE = "reference"  # sequential loop per sequence; slow, the ground truth
     CHUNKED = "chunked"  # packed ragged chunks, closed-form carry between chunks; CPU and CUDA
     TRITON = "triton"  # the chunked algorithm in three Triton kernels; CUDA only
+    NUMBA = "numba"  # one pass over the tokens in numba kernels, forward and backward; CPU only
 
 
 class Engine(enum.StrEnum):

@@ -91,14 +91,15 @@ def test_pieces_with_carried_state_equal_one_call(impl, pieces, shared_decay):
     torch.testing.assert_close(state.conv, s_full.conv, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("impl", [ScanImpl.CHUNKED, ScanImpl.NUMBA])
 @pytest.mark.parametrize("shared_decay", [False, True])
-def test_reference_and_chunked_layers_agree_in_outputs_and_gradients(shared_decay):
+def test_fast_scan_layers_agree_with_the_reference_in_outputs_and_gradients(impl, shared_decay):
     lengths = [50, 3, 0, 17, 1, 33]
     cu = _cu(lengths)
     x = torch.randn(sum(lengths), 8, dtype=torch.float64)
     layers = [
         _layer(ScanImpl.REFERENCE, seed=2, shared_decay=shared_decay),
-        _layer(ScanImpl.CHUNKED, seed=2, shared_decay=shared_decay),
+        _layer(impl, seed=2, shared_decay=shared_decay),
     ]
     assert layers[0].A_log.shape == ((16, 1) if shared_decay else (16, 4))
     init = MambaState(
@@ -117,9 +118,10 @@ def test_reference_and_chunked_layers_agree_in_outputs_and_gradients(shared_deca
         torch.testing.assert_close(g, g_r[name], rtol=1e-8, atol=1e-10, msg=name)
 
 
-def test_float32_chunked_backward_reaches_every_parameter():
+@pytest.mark.parametrize("impl", [ScanImpl.CHUNKED, ScanImpl.NUMBA])
+def test_float32_backward_reaches_every_parameter(impl):
     torch.manual_seed(3)
-    m = Mamba(16, MambaConfig(d_state=8, chunk_size=16))
+    m = Mamba(16, MambaConfig(d_state=8, chunk_size=16, scan=impl))
     x = torch.randn(120, 16, requires_grad=True)
     y, state = m(x, _cu([70, 20, 30]))
     assert y.dtype == torch.float32 and state.ssm.dtype == torch.float32

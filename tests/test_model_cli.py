@@ -45,10 +45,11 @@ def test_bench_model_names_a_missing_checkpoint() -> None:
 
 def test_bench_engines_alternates_the_engines_and_divides_by_the_first() -> None:
     args = ["bench", "engines", "--config", "tiny", "--checkpoint", "default", "--engines", "eager,fixed"]
-    result = CliRunner().invoke(app, [*args, "--rounds", "3", "--json"])
+    result = CliRunner().invoke(app, [*args, "--rounds", "3", "--scan", "chunked", "--json"])
     assert result.exit_code == 0, result.output
     bench = json.loads(result.output.strip().splitlines()[-1])
     assert bench["engines"] == ["eager", "fixed"] and bench["rounds"] == 3 and bench["device"] == "cpu"
+    assert bench["scan"] == "chunked"  # the eager engine's, as asked
     p50 = bench["p50_ms"]
     assert 0 < p50["fixed"] <= bench["p90_ms"]["fixed"] and 0 < p50["eager"] <= bench["p90_ms"]["eager"]
     assert bench["ratio_p50"] == {"eager": 1.0, "fixed": pytest.approx(p50["fixed"] / p50["eager"], abs=2e-3)}
@@ -71,10 +72,10 @@ def test_bench_ops_credits_every_op_to_a_model_function() -> None:
     assert report["device"] == "cpu" and report["cuda_kernels"] is None
     assert sum(r["ops"] for r in rows.values()) == report["ops"] > report["ops_outside_scan"] > 0
     assert sum(r["host_syncs"] for r in rows.values()) == report["host_syncs"] > 0
-    # the Mamba layers, the rule books (their `nonzero` waits for a GPU) and the chunked scan are all seen
+    # the Mamba layers, the rule books (their `nonzero` waits for a GPU) and the scan (numba's) are all seen
     assert rows["model/layers/mamba.py: forward"]["ops"] > 0
     assert rows["model/geometry/rulebook.py: build_strided_rulebook"]["host_syncs"] > 0
-    assert any(w.startswith("model/ops/scan_torch.py") for w in rows)
+    assert report["scan"] == "numba" and any(w.startswith("model/ops/scan_numba.py") for w in rows)
 
 
 @pytest.mark.parametrize("config", ["tiny", "paper"])

@@ -107,7 +107,7 @@ def test_build_info_names_the_served_model(scraped):
     (info,) = samples(families, "phim_build_info")
     assert info.value == 1
     assert info.labels == {k: model[k] for k in ("version", "config", "device", "scan_impl", "weights")}
-    assert info.labels["config"] == "tiny" and info.labels["scan_impl"] in ("chunked", "triton")
+    assert info.labels["config"] == "tiny" and info.labels["scan_impl"] in ("numba", "triton")
 
 
 def test_process_and_python_metrics(scraped):

@@ -1,4 +1,4 @@
-"""Selective scan: reference against a hand-computed case, chunked against the reference."""
+"""Selective scan: reference against a hand-computed case, chunked and numba against the reference."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ import torch
 from model.config import ScanImpl
 from model.ops import scan
 from model.ops import triton_support as runtime
-from model.ops.scan import scan_available, selective_scan
+from model.ops.scan import resolve_scan, scan_available, selective_scan
+from model.ops.scan_numba import selective_scan_numba
 from model.ops.scan_torch import selective_scan_chunked, selective_scan_ref
 
 CPU_IMPLS = [impl for impl in ScanImpl if scan_available(impl, torch.device("cpu"))]
@@ -80,6 +81,47 @@ def test_chunked_matches_reference_float64(lengths, with_h0, chunk_size):
     else:
         empty = _cu(lengths).diff() == 0
         assert torch.equal(h[empty], args[6][empty])
+
+
+@pytest.mark.parametrize("lengths", LENGTHS)
+@pytest.mark.parametrize("with_h0", [False, True])
+@pytest.mark.parametrize("shared", [False, True])
+def test_numba_matches_reference_float64(lengths, with_h0, shared):
+    u, delta, A, B, C, cu, h0 = _inputs(lengths, with_h0=with_h0, seed=len(lengths) + 40)
+    A = A[:, :1] if shared else A
+    y_ref, h_ref = selective_scan_ref(u, delta, A, B, C, cu, h0)
+    y, h = selective_scan_numba(u, delta, A, B, C, cu, h0)
+    assert y.dtype == h.dtype == torch.float64 and h.is_contiguous()
+    torch.testing.assert_close(y, y_ref, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(h, h_ref, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("with_h0", [False, True])
+def test_numba_gradients_pass_gradcheck(shared, with_h0):
+    """Every input's gradient, y's and the final states' paths, against finite differences."""
+    u, delta, A, B, C, cu, h0 = _inputs([6, 0, 9, 1], D=3, N=2, with_h0=with_h0, seed=41)
+    A = A[:, :1] if shared else A
+    leaves = [t.requires_grad_() for t in (u, delta, A, B, C, *([h0] if with_h0 else []))]
+
+    def fn(*t):
+        return selective_scan_numba(*t[:5], cu, t[5] if with_h0 else None)
+
+    assert torch.autograd.gradcheck(fn, leaves, eps=1e-6, atol=1e-7)
+
+
+def test_numba_float32_forward_and_backward_match_chunked():
+    args64 = _inputs([200, 33, 0, 64], D=16)
+    args = [a.float() if a is not None and a.is_floating_point() else a for a in args64]
+    grads = []
+    for fn in (lambda *a: selective_scan_chunked(*a, chunk_size=32), selective_scan_numba):
+        leaves = [a.clone().requires_grad_() if a is not None and a.is_floating_point() else a for a in args]
+        y, h = fn(*leaves)
+        assert y.dtype == h.dtype == torch.float32
+        (y.sin().sum() + h.cos().sum()).backward()
+        grads.append([y.detach(), h.detach(), *(leaves[i].grad for i in (0, 1, 2, 3, 4, 6))])  # not cu
+    for a, b in zip(*grads, strict=True):
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("chunk_size", [4, 32])
@@ -196,11 +238,13 @@ def test_dispatch_logs_once_and_rejects_unavailable(monkeypatch, caplog):
     args = _inputs([5, 6], seed=10)
     monkeypatch.setattr(scan, "_announced", set())
     with caplog.at_level(logging.INFO, logger="model.ops.scan"):
-        for impl in (ScanImpl.AUTO, ScanImpl.CHUNKED):  # AUTO on the CPU is the chunked scan
+        for impl in (ScanImpl.AUTO, ScanImpl.NUMBA):  # AUTO on the CPU is the numba scan
             y_c, _ = selective_scan(*args, impl=impl)
         y_r, _ = selective_scan(*args, impl=ScanImpl.REFERENCE)
     messages = [r.getMessage() for r in caplog.records if r.name == "model.ops.scan"]
-    assert messages == ["selective scan implementation: chunked", "selective scan implementation: reference"]
+    assert messages == ["selective scan implementation: numba", "selective scan implementation: reference"]
     torch.testing.assert_close(y_c, y_r, rtol=1e-10, atol=1e-10)
     with pytest.raises(RuntimeError, match="'triton' is not available on cpu"):  # asked for, so no fallback
         selective_scan(*args, impl=ScanImpl.TRITON)
+    assert resolve_scan(ScanImpl.AUTO, torch.device("meta")) is ScanImpl.CHUNKED  # neither kernel there
+    assert not scan_available(ScanImpl.NUMBA, torch.device("meta"))

@@ -52,7 +52,7 @@ def check_inputs(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, cu: 
         raise ValueError(f"h0 has shape {tuple(h0.shape)}, expected {(S, D, N)}")
 
 
-def _check_cu(cu: np.ndarray, total: int) -> None:
+def check_cu(cu: np.ndarray, total: int) -> None:
     if cu[0] != 0 or cu[-1] != total or (np.diff(cu) < 0).any():
         raise ValueError(f"cu_seqlens must start at 0, be non-decreasing and end at T={total}")
 
@@ -68,7 +68,7 @@ def selective_scan_ref(
     check_inputs(u, delta, A, B, C, cu_seqlens, h0)
     cd = compute_dtype(u, delta, A, B, C)
     bounds = cu_seqlens.tolist()
-    _check_cu(np.asarray(bounds), u.shape[0])
+    check_cu(np.asarray(bounds), u.shape[0])
     u_, delta_, A_, B_, C_ = (t.to(cd) for t in (u, delta, A, B, C))
     D, N = A.shape[0], B.shape[1]
     ys: list[Tensor] = []
@@ -117,7 +117,7 @@ def _build_layout(cu_seqlens: Tensor, chunk_size: int, total: int) -> _Layout:
     """Index arithmetic on the host (one transfer of cu_seqlens), results moved to cu_seqlens' device."""
     K = chunk_size
     cu = cu_seqlens.cpu().numpy().astype(np.int64)
-    _check_cu(cu, total)
+    check_cu(cu, total)
     lengths = np.diff(cu)  # (S,)
     n_chunks = (lengths + K - 1) // K  # (S,)
     rank_seq = np.argsort(-n_chunks, kind="stable")[: int((n_chunks > 0).sum())]  # (R,)

@@ -151,6 +151,7 @@ class EngineComparison:
     config: str
     device: str
     precision: str
+    scan: str  # the eager engine's selective scan (the fixed-shape engines have their own)
     threads: int
     engines: list[str]  # the first is the one the others are divided by
     points_per_sector: list[int]
@@ -196,6 +197,7 @@ def compare_engines(
         config=model.cfg.name,
         device=_device_name(model.device),
         precision=precision.value,
+        scan=resolve_scan(model.cfg.backbone.mamba.scan, model.device).value,
         threads=torch.get_num_threads(),
         engines=[e.value for e in engines],
         points_per_sector=[int(s.shape[0]) for s in sectors],

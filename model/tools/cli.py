@@ -170,6 +170,7 @@ def bench_model_cmd(
     help="Comma-separated engines (eager, fixed, graph); the others' ratios are to the first's.",
 )
 @click.option("--rounds", type=click.IntRange(1), default=10, show_default=True, help="Timed turns of each.")
+@click.option("--scan", type=EnumValue(ScanImpl), help="The eager engine's scan [default: the config's].")
 @precision_option
 @json_option
 def bench_engines_cmd(
@@ -180,6 +181,7 @@ def bench_engines_cmd(
     checkpoint: str | None,
     engines: str,
     rounds: int,
+    scan: ScanImpl | None,
     precision: Precision,
     as_json: bool,
 ) -> None:
@@ -194,13 +196,18 @@ def bench_engines_cmd(
         )
     logging.basicConfig(level=logging.WARNING)
     model = load_model(config, checkpoint, device, threads)
+    if scan is not None:  # the fixed-shape engines have their own segmented scan
+        model.set_scan(scan)
     turn, source = load_turn(points, fallback_kitti=True)
     result = compare_engines(model, turn, [Engine(n) for n in names], rounds, precision=precision).to_dict()
     result |= {"input": source}
     if as_json:
         click.echo(json.dumps(result))
         return
-    click.echo(f"input: {source}; {result['config']} on {result['device']}, {result['threads']} threads")
+    click.echo(
+        f"input: {source}; {result['config']} on {result['device']}, {result['threads']} threads, "
+        f"eager scan {result['scan']}"
+    )
     base = result["engines"][0]
     click.echo(f"\n| engine | p50 ms | p90 ms | p50 / {base} | per round (min-max) |\n|---|---|---|---|---|")
     for e in result["engines"]:

@@ -31,7 +31,8 @@ split_with_sizes chunk unbind alias detach resolve_conj resolve_neg lift_fresh""
 _SYNCS = "nonzero unique_consecutive _unique2 unique_dim is_nonzero equal _local_scalar_dense"
 VIEW_OPS = frozenset(f"aten::{n}" for n in _VIEWS.split())
 SYNC_OPS = frozenset(f"aten::{n}" for n in _SYNCS.split())
-SCAN_FILES = ("model/ops/scan_torch.py", "model/ops/scan_triton.py")  # the scan: one fused path on CUDA
+# the scan: one fused path on CUDA
+SCAN_FILES = ("model/ops/scan_torch.py", "model/ops/scan_triton.py", "model/ops/scan_numba.py")
 _FRAME = re.compile(r"(model/[\w/]+\.py)\(\d+\): (\w+)")
 
 
