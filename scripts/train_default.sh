@@ -1,18 +1,18 @@
 #!/usr/bin/env bash
 # Reproduces the shipped default model from scratch: trains `tiny` on the simulator (3,900 steps on sim
-# stream 0), fine-tunes it fifteen times (2,600 steps on stream 1, 3,000 on stream 2, 6,000 on stream 4,
+# stream 0), fine-tunes it sixteen times (2,600 steps on stream 1, 3,000 on stream 2, 6,000 on stream 4,
 # 4,000 on stream 5, 2,500 on stream 8, 1,600 on stream 9, 2,500 on streams 12, 13, 14, 15, 16, 17, 18 and
-# 19, then 1,200 steps of 4 scans on stream 21; lower peak learning rate, half that in the last ten,
-# direction loss weight 1), evaluates the result on the 200 held-out simulated scans (stream 7) and copies it
-# to model/weights/tiny-sim.pt. `tiny` reads x, y, z; the shipped weights' phases 1-8 read intensity too and
-# phases 9-16 left it out (docs/model-card.md).
+# 19, then 1,200 steps of 4 scans on streams 21 and 23; lower peak learning rate, half that in the last
+# eleven, direction loss weight 1), evaluates the result on the 200 held-out simulated scans (stream 7) and
+# copies it to model/weights/tiny-sim.pt. `tiny` reads x, y, z; the shipped weights' phases 1-8 read
+# intensity too and phases 9-17 left it out (docs/model-card.md).
 # Usage: bash scripts/train_default.sh [RUN_DIR]   (default runs/default; an interrupted phase resumes;
-# the fine-tunes go to RUN_DIR/finetune, RUN_DIR/finetune2, ... RUN_DIR/finetune15)
+# the fine-tunes go to RUN_DIR/finetune, RUN_DIR/finetune2, ... RUN_DIR/finetune16)
 # Environment: STEPS (3900), FT_STEPS (2600), FT2_STEPS (3000), FT3_STEPS (6000), FT4_STEPS (4000),
 # FT5_STEPS (2500), FT6_STEPS (1600), FT7_STEPS (2500), FT8_STEPS (2500), FT9_STEPS (2500), FT10_STEPS (2500),
 # FT11_STEPS (2500), FT12_STEPS (2500), FT13_STEPS (2500), FT14_STEPS (2500), FT15_STEPS (1200),
-# BATCH (2 scans per step), FT15_BATCH (4), LR (2e-3), FT_LR (1e-3), DEVICE (auto), WORKERS (1),
-# THREADS (0 = torch default).
+# FT16_STEPS (1200), BATCH (2 scans per step), FT15_BATCH (4, phases 16-17), LR (2e-3), FT_LR (1e-3),
+# DEVICE (auto), WORKERS (1), THREADS (0 = torch default).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -49,7 +49,9 @@ phase "$RUN/finetune13" 18 "${FT13_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/
 phase "$RUN/finetune14" 19 "${FT14_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune13/model.pt"
 phase "$RUN/finetune15" 21 "${FT15_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune14/model.pt" \
   --batch-size "${FT15_BATCH:-4}" # the last --batch-size wins over common's
-LAST="$RUN/finetune15"
+phase "$RUN/finetune16" 23 "${FT16_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune15/model.pt" \
+  --batch-size "${FT15_BATCH:-4}"
+LAST="$RUN/finetune16"
 "$PHIM" eval --checkpoint "$LAST/model.pt" --data sim --scans 200 --seed 7 --json \
   --predictions "$LAST/predictions-sim-seed7.npz" | tee "$LAST/eval-sim-seed7.json"
 mkdir -p model/weights
