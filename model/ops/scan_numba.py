@@ -15,6 +15,8 @@ backward kernel walks each sequence in reverse with g = dL/dh_t:
 
 reading the states h_t that the forward kept (T, N, D) when a gradient was needed. numba rather than a C++
 extension: it compiles at first use without a build step and caches the result (as `model.graph.scan_cpu`).
+The forward's token loop is written out as in that kernel rather than shared: a helper called per token ran
+2x slower there, and numba's on-disk cache does not see a change to a helper in another file.
 """
 
 from __future__ import annotations
