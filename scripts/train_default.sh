@@ -11,23 +11,42 @@
 # Environment: STEPS (3900), FT_STEPS (2600), FT2_STEPS (3000), FT3_STEPS (6000), FT4_STEPS (4000),
 # FT5_STEPS (2500), FT6_STEPS (1600), FT7_STEPS (2500), FT8_STEPS (2500), FT9_STEPS (2500), FT10_STEPS (2500),
 # FT11_STEPS (2500), FT12_STEPS (2500), FT13_STEPS (2500), FT14_STEPS (2500), FT15_STEPS (1200),
-# FT16_STEPS (1200), BATCH (2 scans per step), FT15_BATCH (4, phases 16-17), LR (2e-3), FT_LR (1e-3),
-# DEVICE (auto), WORKERS (1), THREADS (0 = torch default).
+# FT16_STEPS (1200), BATCH (2 scans per step; phases 16-17 take 4: `quad` below), LR (2e-3), FT_LR (1e-3),
+# DEVICE (auto), WORKERS (1 per process), THREADS (0 = torch default).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 PHIM="${PHIM_VENV:-.venv}/bin/phim"
+PHIM_PY="${PHIM_VENV:-.venv}/bin/python"
 RUN=${1:-runs/default}
 common=(--config tiny --data sim --batch-size "${BATCH:-2}" --device "${DEVICE:-auto}"
   --workers "${WORKERS:-1}" --threads "${THREADS:-0}")
 
-# phase OUT_DIR SEED STEPS LR [more phim train flags]: one training phase, resumed if it was interrupted
+# phase OUT_DIR SEED STEPS LR [more phim train flags]: one training phase, resumed if it was interrupted, started
+# by $launch (empty: one process)
+launch=()
 phase() {
   local out=$1 seed=$2 steps=$3 lr=$4
   shift 4
   local resume=()
   if [ -f "$out/state.pt" ]; then resume=(--resume); fi
-  "$PHIM" train "${common[@]}" --seed "$seed" --steps "$steps" --lr "$lr" --out "$out" "$@" "${resume[@]}"
+  "${launch[@]}" "$PHIM" train "${common[@]}" --seed "$seed" --steps "$steps" --lr "$lr" --out "$out" "$@" \
+    "${resume[@]}"
+}
+
+# quad: a phase of 4 scans a step. On a CPU two DDP processes (torchrun, gloo) of 2 scans and one thread each:
+# the same 4 scans a step at 1.3-1.5x the scans/s of one process on the 2-core machine (docs/benchmarks.md).
+# On a GPU one process of 4. The last --batch-size and --threads win over common's.
+if [ "${DEVICE:-auto}" = cpu ] || ! "$PHIM_PY" -c 'import sys, torch; sys.exit(not torch.cuda.is_available())'; then
+  quad_launch=("${PHIM_VENV:-.venv}/bin/torchrun" --standalone --nproc_per_node 2 --no-python)
+  quad_flags=(--batch-size 2 --threads 1)
+else
+  quad_launch=()
+  quad_flags=(--batch-size 4)
+fi
+quad() {
+  local launch=("${quad_launch[@]}")
+  phase "$@" "${quad_flags[@]}"
 }
 
 tune=(--direction-weight 1.0)
@@ -47,10 +66,8 @@ phase "$RUN/finetune11" 16 "${FT11_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/
 phase "$RUN/finetune12" 17 "${FT12_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune11/model.pt"
 phase "$RUN/finetune13" 18 "${FT13_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune12/model.pt"
 phase "$RUN/finetune14" 19 "${FT14_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune13/model.pt"
-phase "$RUN/finetune15" 21 "${FT15_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune14/model.pt" \
-  --batch-size "${FT15_BATCH:-4}" # the last --batch-size wins over common's
-phase "$RUN/finetune16" 23 "${FT16_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune15/model.pt" \
-  --batch-size "${FT15_BATCH:-4}"
+quad "$RUN/finetune15" 21 "${FT15_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune14/model.pt"
+quad "$RUN/finetune16" 23 "${FT16_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune15/model.pt"
 LAST="$RUN/finetune16"
 "$PHIM" eval --checkpoint "$LAST/model.pt" --data sim --scans 200 --seed 7 --json \
   --predictions "$LAST/predictions-sim-seed7.npz" | tee "$LAST/eval-sim-seed7.json"
