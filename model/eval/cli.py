@@ -90,8 +90,7 @@ def eval_cmd(
     from model.device import pick_device
     from model.eval.metrics import count_ground_truths, format_table
     from model.eval.prediction_files import read_predictions_by_fill, write_predictions
-    from model.eval.runner import ScanResult, run_eval, run_rescore, score, vehicle_ap, within_range
-    from model.eval.vehicle_check import vehicle_check
+    from model.eval.runner import ScanResult, run_eval, run_rescore, within_range
 
     source = scan_source(data, seed, shuffle=False)
     count = min(scans, len(source))
@@ -121,18 +120,26 @@ def eval_cmd(
     if predictions is not None:
         write_predictions(predictions, results)
     results = [within_range(r, max_range) for r in results]
-    metrics = score(results)
-    by_iou = {"0.7": metrics["LEVEL_1"]["VEHICLE"]["AP"], "0.5": vehicle_ap(results, 0.5)}
-    metrics |= {"max_range": max_range, "vehicle_ap_by_iou": by_iou}
-    metrics["vehicle_check"] = vehicle_check(results)
-    if by_turn:
-        metrics["by_turn"] = by_turn
+    metrics = _metrics(results, max_range, by_turn)
     if as_json:
         click.echo(json.dumps(metrics, indent=2))
         return
     click.echo(f"{what}, data {data}, {count} scans in {time.perf_counter() - t0:.1f} s")
     click.echo(format_table(metrics, count_ground_truths([r.truths[-1] for r in results])))
     _print_more(metrics)
+
+
+def _metrics(results: list, max_range: float, by_turn: dict) -> dict:
+    """Scored results (within range) -> `phim eval --json`'s object."""
+    from model.eval.runner import score, vehicle_ap
+    from model.eval.vehicle_check import vehicle_check
+
+    metrics = score(results)
+    by_iou = {"0.7": metrics["LEVEL_1"]["VEHICLE"]["AP"], "0.5": vehicle_ap(results, 0.5)}
+    metrics |= {"max_range": max_range, "vehicle_ap_by_iou": by_iou, "vehicle_check": vehicle_check(results)}
+    if by_turn:
+        metrics["by_turn"] = by_turn
+    return metrics
 
 
 def _print_more(metrics: dict) -> None:

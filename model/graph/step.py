@@ -93,6 +93,19 @@ class _Down:
     segments: Segments  # one per stream over the coarse sites
 
 
+@dataclass(frozen=True)
+class _Backbone:
+    """The 3D backbone's part of a step."""
+
+    sites: Sites  # (V,) the step's voxel sites
+    x: Tensor  # (V, C) their features
+    kept: Tensor  # (B,) points kept
+    out_of_range: Tensor  # (B,) points outside the grid
+    site_counts: list[Tensor]  # the voxels, then per coarse key the sites after (a) and (c): for the host
+    conv: list[Tensor]  # per block the new global-Mamba conv state (B, di, d_conv - 1)
+    ssm: list[Tensor]  # per block the new global-Mamba ssm state (B, di, N)
+
+
 def _down_tables(sites: Sites, kernel: int, stride: int, kz: int, caps: tuple[int, int] | None) -> _Down:
     k2, ktz = (kernel, kernel), (kernel, kz)
     if stride == 1:  # submanifold: the same sites throughout; an inverse table is the mirrored table
@@ -176,6 +189,44 @@ class GraphStep(nn.Module):
     ) -> tuple[Tensor, list[Tensor], list[Tensor], Tensor, Tensor, Tensor, Tensor]:
         """-> (host (n,) float32 laid out by `host_layout(B)`, new conv, ssm, buffer feats, cols, valid,
         maps)."""
+        cfg = self.cfg
+        bb = self._backbone(points, counts, conv, ssm, cap)
+        new_f, new_c, new_v, n_vox = self._sector_rows(bb.sites, bb.x)
+        feats = torch.cat([buf_feats, new_f[:, None]], 1)  # (B, keep + 1, S, C)
+        cols = torch.cat([buf_cols, new_c[:, None]], 1)
+        valid = torch.cat([buf_valid, new_v[:, None]], 1)
+        new_maps = self._dense(feats, cols, valid, maps, crop, cap)
+        out = HeadOutput(*new_maps.permute(0, 3, 1, 2).split(self._map_split(), 1))
+        cand = peak_candidates(out, cfg.head, cfg.bev)
+        packed = torch.cat(
+            [
+                cand.boxes,
+                cand.scores[..., None],
+                cand.labels[..., None].float(),
+                cand.heat[..., None],
+            ],
+            -1,
+        )
+        b = points.shape[0]
+        coords = bb.sites.coords
+        wedge = wedge_of(coords[:, THETA], coords[:, BATCH], bb.sites.valid, b, wedge_bins(cfg))
+        stats = torch.stack([bb.kept, bb.out_of_range, n_vox, wedge], 1).float()  # (B, len(STATS))
+        host = torch.cat([packed.reshape(-1), stats.reshape(-1), torch.stack(bb.site_counts).float()])
+        keep = cfg.buffer_sectors
+        return (
+            host,
+            bb.conv,
+            bb.ssm,
+            feats[:, feats.shape[1] - keep :],
+            cols[:, cols.shape[1] - keep :],
+            valid[:, valid.shape[1] - keep :],
+            new_maps,
+        )
+
+    def _backbone(
+        self, points: Tensor, counts: Tensor, conv: list[Tensor], ssm: list[Tensor], cap: Capacity
+    ) -> _Backbone:
+        """`forward`'s points and global-Mamba states -> the voxelizer and 3D backbone's outputs."""
         m, cfg = self.model, self.cfg
         sites, x, kept, out_of_range = voxelize_fixed(m.voxelizer, points, counts, cap.voxels)
         local = frustum_segments(
@@ -192,13 +243,16 @@ class GraphStep(nn.Module):
             x, st = _block(block, x, local, tables[(block.kernel, block.stride)], MambaState(c, s))
             new_conv.append(st.conv)
             new_ssm.append(st.ssm)
-        new_f, new_c, new_v, n_vox = self._sector_rows(sites, x)
-        feats = torch.cat([buf_feats, new_f[:, None]], 1)  # (B, keep + 1, S, C)
-        cols = torch.cat([buf_cols, new_c[:, None]], 1)
-        valid = torch.cat([buf_valid, new_v[:, None]], 1)
-        b = points.shape[0]
+        return _Backbone(sites, x, kept, out_of_range, site_counts, new_conv, new_ssm)
+
+    def _dense(
+        self, feats: Tensor, cols: Tensor, valid: Tensor, maps: Tensor, crop: Tensor, cap: Capacity
+    ) -> Tensor:
+        """The buffered sectors' rows (B, keep + 1, S, ...) -> the head's new maps (B, H, W, M): on a crop
+        around the new sector merged into the last maps when cap.bev_crop, else the whole map."""
+        b = feats.shape[0]
         bev = polar_to_bev(
-            m.to_bev,
+            self.model.to_bev,
             self.cell_table,
             feats.view(b, -1, feats.shape[-1]),
             cols[..., 0].view(b, -1),
@@ -208,33 +262,8 @@ class GraphStep(nn.Module):
         if cap.bev_crop:
             assert self.crop is not None
             part = self._head_maps(crop_cells(bev, crop[:, :2], self.crop.size))  # (B, M, h, w)
-            new_maps = merge_crop(maps, part, crop)  # (B, H, W, M)
-        else:
-            new_maps = self._head_maps(bev).permute(0, 2, 3, 1).contiguous()  # (B, H, W, M)
-        out = HeadOutput(*new_maps.permute(0, 3, 1, 2).split(self._map_split(), 1))
-        cand = peak_candidates(out, cfg.head, cfg.bev)
-        packed = torch.cat(
-            [
-                cand.boxes,
-                cand.scores[..., None],
-                cand.labels[..., None].float(),
-                cand.heat[..., None],
-            ],
-            -1,
-        )
-        wedge = wedge_of(sites.coords[:, THETA], sites.coords[:, BATCH], sites.valid, b, wedge_bins(cfg))
-        stats = torch.stack([kept, out_of_range, n_vox, wedge], 1).float()  # (B, len(STATS))
-        host = torch.cat([packed.reshape(-1), stats.reshape(-1), torch.stack(site_counts).float()])
-        keep = cfg.buffer_sectors
-        return (
-            host,
-            new_conv,
-            new_ssm,
-            feats[:, feats.shape[1] - keep :],
-            cols[:, cols.shape[1] - keep :],
-            valid[:, valid.shape[1] - keep :],
-            new_maps,
-        )
+            return merge_crop(maps, part, crop)  # (B, H, W, M)
+        return self._head_maps(bev).permute(0, 2, 3, 1).contiguous()  # (B, H, W, M)
 
     def _head_maps(self, bev: Tensor) -> Tensor:
         """bev (B, C, H, W) -> the head's maps (B, M, H, W), HeadOutput's fields along M (float32)."""
