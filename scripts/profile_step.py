@@ -24,7 +24,7 @@ from model.sectors import split_turn
 from model.tools.cli import load_model, load_turn
 
 
-def main() -> None:
+def _args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default="paper")
     ap.add_argument("--checkpoint", default=None)
@@ -36,7 +36,11 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=8)
     ap.add_argument("--rows", type=int, default=25)
     ap.add_argument("--json", default=None, help="write the table as JSON here")
-    a = ap.parse_args()
+    return ap.parse_args()
+
+
+def main() -> None:
+    a = _args()
     model = load_model(a.config, a.checkpoint, a.device)
     turn, source = load_turn(None, fallback_kitti=True)
     dev = model.device
@@ -86,17 +90,22 @@ def main() -> None:
         "kernels_per_step": round(sum(r["calls"] for r in rows) / a.steps, 1),
         "top": [dict(r, total_ms=round(r["total_ms"] / a.steps, 3)) for r in rows[: a.rows]],
     }
-    print(
-        f"{a.config} {a.engine} {a.precision} batch {a.batch} on {report['device']}: p50 {p50:.2f} ms, "
-        f"device busy {busy_ms:.2f} ms/step ({report['kernels_per_step']} kernels), warm-up {warm_s:.0f} s"
-    )
-    print("| ms/step | calls/step | kernel |")
-    print("|---|---|---|")
-    for r in report["top"]:
-        print(f"| {r['total_ms']:.3f} | {r['calls'] / a.steps:.1f} | {r['name'][:110]} |")
+    _print(report, a.steps)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(report, f, indent=1)
+
+
+def _print(r: dict, steps: int) -> None:
+    print(
+        f"{r['config']} {r['engine']} {r['precision']} batch {r['batch']} on {r['device']}: "
+        f"p50 {r['p50_ms']:.2f} ms, device busy {r['kernel_ms_per_step']:.2f} ms/step "
+        f"({r['kernels_per_step']} kernels), warm-up {r['warmup_s']:.0f} s"
+    )
+    print("| ms/step | calls/step | kernel |")
+    print("|---|---|---|")
+    for k in r["top"]:
+        print(f"| {k['total_ms']:.3f} | {k['calls'] / steps:.1f} | {k['name'][:110]} |")
 
 
 def _kernels(prof, cuda: bool) -> list[dict]:
