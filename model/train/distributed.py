@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -53,6 +54,9 @@ class Dist:
         if self.world == 1:
             return module
         ids = [self.device.index] if self.device.type == "cuda" else None
+        # the BEV shortcuts' 1 x 1 conv weight grads come back with other strides on their size-1 dims: the
+        # same memory, contiguous, but DDP's reducer compares strides and warns on every rank
+        warnings.filterwarnings("ignore", message="Grad strides do not match bucket view strides")
         return DistributedDataParallel(module, device_ids=ids)
 
     def any(self, flag: bool) -> bool:
