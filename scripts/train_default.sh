@@ -35,7 +35,7 @@ phase() {
 }
 
 # quad: a phase of 4 scans a step. On a CPU two DDP processes (torchrun, gloo) of 2 scans and one thread each:
-# the same 4 scans a step at 1.3-1.5x the scans/s of one process on the 2-core machine (docs/benchmarks.md).
+# the same 4 scans a step at ~1.1x the scans/s of one process on the 2-core machine (docs/benchmarks.md).
 # On a GPU one process of 4. The last --batch-size and --threads win over common's.
 if [ "${DEVICE:-auto}" = cpu ] || ! "$PHIM_PY" -c 'import sys, torch; sys.exit(not torch.cuda.is_available())'; then
   quad_launch=("${PHIM_VENV:-.venv}/bin/torchrun" --standalone --nproc_per_node 2 --no-python)
