@@ -24,7 +24,7 @@ def errors(pred: torch.Tensor) -> dict[str, float]:
 
 def test_a_perfect_box_has_no_error() -> None:
     e = errors(TRUE.clone())
-    assert e["iou"] == pytest.approx(1.0) and e["iou_true_yaw"] == pytest.approx(1.0)
+    assert all(e[c] == pytest.approx(1.0) for c in COLUMNS if c.startswith("iou"))
     assert all(e[c] == pytest.approx(0.0, abs=1e-9) for c in COLUMNS[:7])
     assert e["score"] == pytest.approx(0.8)
 
@@ -46,6 +46,20 @@ def test_each_part_of_the_error_is_measured_on_its_own() -> None:
     assert e["centre_m"] == pytest.approx(0.5) and e["rel_l"] == pytest.approx(0.25)
     assert e["axis_deg"] == pytest.approx(80.0) and e["flipped"] == 1.0
     assert e["iou"] < e["iou_true_yaw"] < 1.0  # with the true yaw only centre and length are off
+    assert e["iou"] < e["iou_true_size"] < 1.0  # (crossed boxes: the true centre alone changes nothing here)
+
+
+@pytest.mark.parametrize("part", ["size", "centre"])
+def test_the_true_part_put_in_is_the_whole_error_when_it_is_the_only_one(part: str) -> None:
+    pred = TRUE.clone()
+    if part == "size":
+        pred[0, 3:6] *= torch.tensor([1.2, 0.9, 1.1], dtype=torch.float64)
+    else:
+        pred[0, :3] += torch.tensor([0.4, -0.3, 0.2], dtype=torch.float64)
+    e = errors(pred)
+    assert e["iou"] < 0.8 and e[f"iou_true_{part}"] == pytest.approx(1.0)
+    other = "centre" if part == "size" else "size"
+    assert e[f"iou_true_{other}"] == pytest.approx(e["iou"]) and e["iou_true_yaw"] == pytest.approx(e["iou"])
 
 
 def test_phim_diagnose_on_the_shipped_model() -> None:
@@ -57,6 +71,8 @@ def test_phim_diagnose_on_the_shipped_model() -> None:
     vehicles = result["VEHICLE"]
     assert vehicles["targets"] >= 5 and vehicles["iou_threshold"] == 0.7
     assert 0.0 <= vehicles["at_threshold"] <= 1.0 and 0.0 < vehicles["iou"] <= 1.0
+    for part in ("size", "centre"):  # the shipped model's sizes and centres are off: the true ones gain
+        assert vehicles[f"at_threshold_true_{part}"] >= vehicles["at_threshold"], part
     assert vehicles["centre_m"] < 1.0  # the trained model finds vehicle centres to within a metre
 
 

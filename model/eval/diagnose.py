@@ -3,9 +3,10 @@
 For each labelled scan (no augmentation, all sectors as one stream, full-turn prediction) the head's outputs
 are read at the centre cell of every target box, exactly where training supervises them, and decoded as the
 loss decodes them. Per class this reports each part's error (centre, z, dims, heading axis and direction),
-the 3D IoU of the decoded box with its target, and the same IoU with the true yaw put in: how much of the
-shortfall at the AP threshold is heading; optionally broken down by how well each box is seen (points inside
-it) or by its range. It says nothing about false positives or missed peaks; `phim eval` is the metric.
+the 3D IoU of the decoded box with its target, and the same IoU with one part of the target put in (its yaw,
+its size, its centre): how much of the shortfall at the AP threshold each part is; optionally broken down
+by how well each box is seen (points inside it) or by its range. It says nothing about false positives or
+missed peaks; `phim eval` is the metric.
 """
 
 from __future__ import annotations
@@ -29,10 +30,12 @@ from model.layers.head_targets import BEVTargets, TargetConfig, build_targets
 from model.layers.phim_block import StreamLayout
 
 # per target box: label, centre error (m), |dz| (m), |l/l'-1|, |w/w'-1|, |h/h'-1|, axis error (deg),
-# direction flipped (0/1), IoU, IoU with the true yaw, heatmap score at the centre
+# direction flipped (0/1), IoU, IoU with the true yaw / size (l, w, h) / centre (x, y, z), heatmap score at
+# the centre
+TRUE_PARTS = ("yaw", "size", "centre")
 COLUMNS = (
     *("centre_m", "z_m", "rel_l", "rel_w", "rel_h", "axis_deg", "flipped"),
-    *("iou", "iou_true_yaw", "score"),
+    *("iou", *(f"iou_true_{part}" for part in TRUE_PARTS), "score"),
 )
 # per target box, after COLUMNS: the points of the scan inside it, its distance from the sensor (m)
 CONTEXT = ("points", "range_m")
@@ -54,7 +57,11 @@ def box_errors(pred: Tensor, true: Tensor, score: Tensor) -> Tensor:
     """pred, true (T, 7) float64 boxes, score (T,) -> (T, len(COLUMNS)) float64."""
     dyaw = torch.remainder(pred[:, 6] - true[:, 6] + math.pi, 2 * math.pi) - math.pi  # (T,) in [-pi, pi)
     axis = torch.remainder(dyaw + math.pi / 2, math.pi) - math.pi / 2  # (T,) in [-pi/2, pi/2)
-    with_true_yaw = torch.cat([pred[:, :6], true[:, 6:]], 1)
+    with_true = (  # pred with the true yaw, size, centre: (T, 7) each
+        torch.cat([pred[:, :6], true[:, 6:]], 1),
+        torch.cat([pred[:, :3], true[:, 3:6], pred[:, 6:]], 1),
+        torch.cat([true[:, :3], pred[:, 3:]], 1),
+    )
     cols = [
         torch.linalg.vector_norm(pred[:, :2] - true[:, :2], dim=1),
         (pred[:, 2] - true[:, 2]).abs(),
@@ -62,7 +69,7 @@ def box_errors(pred: Tensor, true: Tensor, score: Tensor) -> Tensor:
         axis.abs() * 180 / math.pi,
         (dyaw.abs() > math.pi / 2).double(),
         rotated_iou_3d_aligned(pred, true),
-        rotated_iou_3d_aligned(with_true_yaw, true),
+        *(rotated_iou_3d_aligned(b, true) for b in with_true),
         score,
     ]
     return torch.stack(cols, 1)
@@ -123,7 +130,9 @@ def _summary(sel: np.ndarray, thr: float) -> dict[str, float]:
         summary[col] = float(sel[:, j].mean() if col == "flipped" else np.median(sel[:, j]))
     summary["iou_threshold"] = thr
     summary["at_threshold"] = float((sel[:, COLUMNS.index("iou")] >= thr).mean())
-    summary["at_threshold_true_yaw"] = float((sel[:, COLUMNS.index("iou_true_yaw")] >= thr).mean())
+    for part in TRUE_PARTS:
+        iou = sel[:, COLUMNS.index(f"iou_true_{part}")]
+        summary[f"at_threshold_true_{part}"] = float((iou >= thr).mean())
     return summary
 
 
@@ -136,7 +145,7 @@ def diagnose(
 ) -> dict[str, dict[str, float]]:
     """Per class name (with `by` points / range: per "CLASS, bucket"): target count, the median of each
     COLUMNS entry (`flipped`: the fraction), and the fraction of targets whose IoU reaches the class's AP
-    threshold, with the predicted and the true yaw. Empty groups are left out."""
+    threshold, as predicted and with the true yaw, size or centre put in. Empty groups are left out."""
     thresholds = (metrics or MetricsConfig()).iou_thresholds
     width = 1 + len(COLUMNS) + len(CONTEXT)
     rows = np.concatenate([diagnose_scan(model, scan_at(i)) for i in indices] or [np.zeros((0, width))])
@@ -157,7 +166,7 @@ def diagnose(
 def format_diagnosis(d: dict[str, dict[str, float]]) -> str:
     head = (
         "| group | targets | centre err | z err | l / w / h rel. err | axis err | flipped | IoU "
-        "| IoU, true yaw | IoU >= thr | same, true yaw | score |"
+        "| IoU, true yaw | IoU >= thr | same, true yaw / size / centre | score |"
     )
     rows = [head, "|" + "---|" * 12]
     for name, s in d.items():
@@ -165,7 +174,8 @@ def format_diagnosis(d: dict[str, dict[str, float]]) -> str:
             f"| {name} | {s['targets']:.0f} | {s['centre_m']:.2f} m | {s['z_m']:.2f} m "
             f"| {s['rel_l']:.2f} / {s['rel_w']:.2f} / {s['rel_h']:.2f} | {s['axis_deg']:.1f} deg "
             f"| {s['flipped']:.0%} | {s['iou']:.2f} | {s['iou_true_yaw']:.2f} "
-            f"| {s['at_threshold']:.0%} (>= {s['iou_threshold']:g}) | {s['at_threshold_true_yaw']:.0%} "
+            f"| {s['at_threshold']:.0%} (>= {s['iou_threshold']:g}) "
+            f"| {' / '.join(format(s['at_threshold_true_' + p], '.0%') for p in TRUE_PARTS)} "
             f"| {s['score']:.2f} |"
         )
     return "\n".join(rows) + "\n(medians at the true centre cells; flipped and IoU >= thr are fractions)"
