@@ -8,6 +8,7 @@ File layout (torch.save of plain data, loadable with weights_only=True, never ar
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -86,15 +87,16 @@ def load_checkpoint(
 ) -> PHiM:
     """Build the model from the checkpoint's own config and load its weights.
 
-    With `expected`, a checkpoint whose config differs raises CheckpointError naming every differing field.
+    With `expected`, a checkpoint whose config differs raises CheckpointError naming every differing field
+    (its box refiner, `refine`, aside: `tiny` with a refiner is still `tiny`).
     """
     payload = read_checkpoint(path)
     try:  # config fields added after the file was written take their defaults
         cfg = PHiMConfig.from_dict(payload["config"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {path}: config unreadable ({type(e).__name__}: {e})") from e
-    if expected is not None:
-        diff = config_diff(plain_config(cfg), plain_config(expected))
+    if expected is not None:  # a box refiner comes with the checkpoint's weights: not a mismatch
+        diff = config_diff(plain_config(cfg), plain_config(replace(expected, refine=cfg.refine)))
         if diff:
             raise CheckpointError(f"checkpoint {path}: config mismatch: " + "; ".join(diff))
     model = PHiM(cfg)
@@ -117,16 +119,17 @@ VFE_INPUT = "voxelizer.layers.0.linear.weight"
 def init_weights(path: str | Path, cfg: PHiMConfig) -> dict[str, torch.Tensor]:
     """The weights of checkpoint `path` as the start of a model of config `cfg`. The checkpoint's config must
     be cfg's, but for reading more point columns (`vfe.point_features`): the weights of the columns cfg does
-    not read are left out, so the new model starts as the old one with those columns zero."""
+    not read are left out, so the new model starts as the old one with those columns zero. A box refiner's
+    weights are left out too: `phim train` trains the detector, `phim train-refiner` the refiner after it."""
     model = load_checkpoint(path)
     have, want = model.cfg.vfe.point_features, cfg.vfe.point_features
-    expected = cfg.reading(have)
+    expected = replace(cfg.reading(have), refine=model.cfg.refine)
     diff = config_diff(plain_config(model.cfg), plain_config(expected))
     if want > have:
         diff.append(f"vfe.point_features: checkpoint has {have}, expected at least {want}")
     if diff:
         raise CheckpointError(f"checkpoint {path}: config mismatch: " + "; ".join(diff))
-    state = model.state_dict()
+    state = {k: v for k, v in model.state_dict().items() if not k.startswith("refiner.")}
     w = state[VFE_INPUT]  # (hidden, have + 9)
     state[VFE_INPUT] = torch.cat([w[:, :want], w[:, have:]], 1)  # (hidden, want + 9)
     return state

@@ -173,6 +173,16 @@ class HeadConfig:
 
 
 @dataclass(frozen=True)
+class RefineConfig:
+    """The box refiner (model.layers.refine): a second stage that corrects each box from its raw points."""
+
+    points: int = 128  # points read per box
+    grow: tuple[float, float, float] = (1.0, 1.0, 0.5)  # metres added to l, w, h for the points read
+    hidden: int = 128  # channels of the pooled point feature
+    iou_weight: float = 0.5  # refined score = score^(1 - a) * predicted IoU^a
+
+
+@dataclass(frozen=True)
 class PHiMConfig:
     name: str
     grid: PolarGridConfig
@@ -186,6 +196,7 @@ class PHiMConfig:
     # the fixed-shape step's voxel rows per buffered sector (serving only, no weights: a sector with more
     # voxels fails alone); about 1.5x the most seen on the real KITTI sectors (tiny 4,254; paper 14,977)
     sector_voxels: int = 8192
+    refine: RefineConfig | None = None  # the box refiner, trained after the detector (`phim train-refiner`)
 
     def __post_init__(self) -> None:
         per_sector, rem = divmod(self.grid.theta_bins, self.sectors_per_turn)
@@ -226,6 +237,7 @@ class PHiMConfig:
             buffer_sectors=d["buffer_sectors"],
             history=MambaHistory(d.get("history", MambaHistory.TURN)),
             sector_voxels=d.get("sector_voxels") or _default_sector_voxels(d["name"]),
+            refine=RefineConfig(**_tuples(d["refine"])) if d.get("refine") else None,
         )
 
 

@@ -22,6 +22,7 @@ from model.layers.head import CenterHead, HeadOutput, decode
 from model.layers.mamba import Mamba, MambaState
 from model.layers.phim_block import PHiMBackbone, StreamLayout
 from model.layers.polar_bev import PolarToBEV
+from model.layers.refine import BoxRefiner, refine
 from model.layers.voxelize import PolarVoxelizer, VoxelStats
 
 
@@ -54,6 +55,7 @@ class PHiM(nn.Module):
         self.to_bev = PolarToBEV(cfg.grid, cfg.bev)
         self.bev_backbone = BEVBackbone(d, cfg.bev)
         self.head = CenterHead(self.bev_backbone.out_channels, cfg.head)
+        self.refiner = BoxRefiner(len(cfg.head.class_names), cfg.refine) if cfg.refine else None
 
     @property
     def device(self) -> torch.device:
@@ -99,10 +101,14 @@ class PHiM(nn.Module):
         return decode(self.predict(scenes), self.cfg.head, self.cfg.bev)
 
     def forward_turn(self, sectors: list[Tensor]) -> tuple[list[Detections], Encoded]:
-        """The whole turn in one pass: all sectors of one stream, global Mamba over their concatenation."""
+        """The whole turn in one pass: all sectors of one stream, global Mamba over their concatenation (and
+        the box refiner, where the model has one, over all their points)."""
         layout = StreamLayout.single_stream(len(sectors), self.device)
         enc = self.encode(sectors, layout, self.init_states(1))
-        return self.detect([enc.sectors]), enc
+        (det,) = self.detect([enc.sectors])
+        if self.refiner is not None:
+            det = refine(self.refiner, det, torch.cat(sectors))
+        return [det], enc
 
 
 def split_sectors(x: SparseTensor) -> list[SectorFeatures]:

@@ -21,6 +21,7 @@ from model.geometry.boxes import Detections
 from model.layers.head import decode
 from model.layers.mamba import MambaState
 from model.layers.phim_block import StreamLayout
+from model.layers.refine import refine_stream
 from model.layers.voxelize import PointsError, validate_points
 from model.precision import autocast, check_precision
 
@@ -32,6 +33,9 @@ class StreamState:
     mamba: tuple[MambaState, ...]  # per PHiM block: the global Mamba's (conv, ssm) state of this stream
     buffer: tuple[SectorFeatures, ...]  # backbone outputs of the last sectors, oldest first
     sectors_seen: int
+    # the buffered sectors' raw points (N_i, 3) x, y, z, oldest first, which the box refiner reads (none
+    # without a refiner)
+    points: tuple[Tensor, ...] = ()
 
     @property
     def buffered_sectors(self) -> int:
@@ -113,10 +117,11 @@ class StreamingDetector:
             idx = torch.tensor([i], device=dev)
             mamba = tuple(b.index(idx) for b in enc.states)
             buffer = tuple(scene[-keep:]) if keep else ()
-            new_states.append(StreamState(mamba, buffer, s.sectors_seen + 1))
+            det, kept = refine_stream(self.model.refiner, detections[i], s.points, points[i], keep)
+            new_states.append(StreamState(mamba, buffer, s.sectors_seen + 1, kept))
             results.append(
                 SectorResult(
-                    detections=detections[i],
+                    detections=det,
                     context_sectors=len(scene),
                     points_kept=enc.stats.points_kept[i],
                     points_out_of_range=enc.stats.points_out_of_range[i],

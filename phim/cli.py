@@ -39,6 +39,9 @@ COMMANDS: dict[str, Entry | Group] = {
     "replay": Entry("clients.cli:replay", "Stream a recorded drive to a server and write its detections."),
     "sim": Entry("model.data.sim.cli:sim_cmd", "Simulate one LiDAR turn through a random street scene."),
     "train": Entry("model.train.cli:train_cmd", "Train a model (streaming, as the paper trains)."),
+    "train-refiner": Entry(
+        "model.train.refine_cli:train_refiner_cmd", "Train the box refiner on a trained, frozen detector."
+    ),
     "eval": Entry("model.eval.cli:eval_cmd", "Waymo-style AP/APH per class and level, per buffer fill."),
     "diagnose": Entry("model.eval.cli:diagnose_cmd", "Each part of the predicted boxes against the truth."),
     "auth": Group(

@@ -3,8 +3,9 @@
 # stream 0), fine-tunes it sixteen times (2,600 steps on stream 1, 3,000 on stream 2, 6,000 on stream 4,
 # 4,000 on stream 5, 2,500 on stream 8, 1,600 on stream 9, 2,500 on streams 12, 13, 14, 15, 16, 17, 18 and
 # 19, then 1,200 steps of 4 scans on streams 21 and 23; lower peak learning rate, half that in the last
-# eleven, direction loss weight 1), evaluates the result on the 200 held-out simulated scans (stream 7) and
-# copies it to model/weights/tiny-sim.pt. `tiny` reads x, y, z; the shipped weights' phases 1-8 read
+# eleven, direction loss weight 1), trains the box refiner on the last phase's boxes (800 scans each of
+# streams 28 and 29, 8 epochs: `phim train-refiner`), evaluates the result on the 200 held-out simulated
+# scans (stream 7) and copies it to model/weights/tiny-sim.pt. `tiny` reads x, y, z; the shipped weights' phases 1-8 read
 # intensity too and phases 9-17 left it out (docs/model-card.md).
 # Usage: bash scripts/train_default.sh [RUN_DIR]   (default runs/default; an interrupted phase resumes;
 # the fine-tunes go to RUN_DIR/finetune, RUN_DIR/finetune2, ... RUN_DIR/finetune16)
@@ -68,7 +69,12 @@ phase "$RUN/finetune13" 18 "${FT13_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/
 phase "$RUN/finetune14" 19 "${FT14_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune13/model.pt"
 quad "$RUN/finetune15" 21 "${FT15_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune14/model.pt"
 quad "$RUN/finetune16" 23 "${FT16_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune15/model.pt"
-LAST="$RUN/finetune16"
+LAST="$RUN/refined"
+mkdir -p "$LAST"
+if [ ! -f "$LAST/model.pt" ]; then
+  "$PHIM" train-refiner --checkpoint "$RUN/finetune16/model.pt" --out "$LAST/model.pt" --seed 28 --seed 29 \
+    --scans 800 --epochs 8 --threads "${THREADS:-0}"
+fi
 "$PHIM" eval --checkpoint "$LAST/model.pt" --data sim --scans 200 --seed 7 --json \
   --predictions "$LAST/predictions-sim-seed7.npz" | tee "$LAST/eval-sim-seed7.json"
 mkdir -p model/weights

@@ -73,6 +73,16 @@ def test_equals_eager_over_three_turns(model: PHiM, history: MambaHistory):
 
 
 @pytest.mark.samples
+def test_with_a_box_refiner_equals_eager_alone_and_batched():
+    """The refiner runs after the step in both engines on the points each stream buffers."""
+    model = make_model(refine=True)
+    turns = [kitti_scan(0), torch.from_numpy(synthetic_turn(seed=3))]
+    sectors = [split_turn(t, model.cfg.sectors_per_turn) for t in turns]
+    graph, eager = GraphStreamingDetector(model), StreamingDetector(model)
+    run_both(graph, eager, [[s[k % 4] for s in sectors] for k in range(6)])
+
+
+@pytest.mark.samples
 @pytest.mark.parametrize("order", [[0, 1, 2], [2, 0, 1]])
 def test_batched_equals_eager_in_any_order(model: PHiM, order: list[int]):
     turns = [kitti_scan(0), kitti_scan(1), torch.from_numpy(synthetic_turn(seed=3))]

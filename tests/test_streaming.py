@@ -9,7 +9,7 @@ import pytest
 import torch
 from conftest import kitti_scan
 
-from model.config import MambaHistory, PHiMConfig, ScanImpl, tiny
+from model.config import MambaHistory, PHiMConfig, RefineConfig, ScanImpl, tiny
 from model.data.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.fold_bn import fold_batchnorms
@@ -21,12 +21,13 @@ from model.sectors import split_turn
 from model.stream import StreamingDetector
 
 
-def make_model(cfg: PHiMConfig | None = None) -> PHiM:
-    """Random weights (of `cfg`, default tiny), but with a heatmap that has clear peaks, so that only a few
-    hundred boxes pass the score threshold and the pre/post-NMS top-k never cut between near-ties (float
-    noise would pick there)."""
+def make_model(cfg: PHiMConfig | None = None, refine: bool = False) -> PHiM:
+    """Random weights (of `cfg`, default tiny; with a box refiner where `refine`), but with a heatmap that
+    has clear peaks, so that only a few hundred boxes pass the score threshold and the pre/post-NMS top-k
+    never cut between near-ties (float noise would pick there)."""
     cfg = cfg or tiny()
     cfg = dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, score_threshold=0.45))
+    cfg = dataclasses.replace(cfg, refine=RefineConfig()) if refine else cfg
     torch.manual_seed(1)
     model = PHiM(cfg)
     with torch.no_grad():
@@ -62,7 +63,15 @@ def model() -> PHiM:
     return make_model()
 
 
-def test_streaming_equals_whole_turn(model: PHiM):
+@pytest.fixture(scope="module")
+def refined() -> PHiM:
+    return make_model(refine=True)
+
+
+@pytest.mark.parametrize("refine", [False, True])
+def test_streaming_equals_whole_turn(model: PHiM, refined: PHiM, refine: bool):
+    """With a box refiner too: the stream buffers its sectors' points, and the refiner reads them."""
+    model = refined if refine else model
     sectors = split_turn(kitti_scan(0), model.cfg.sectors_per_turn)
     det = StreamingDetector(model)
     results, state = stream(det, sectors)
@@ -78,6 +87,11 @@ def test_streaming_equals_whole_turn(model: PHiM):
     assert len(whole[0]) > 0
     assert_same_detections(results[-1].detections, whole[0])
     assert [r.context_sectors for r in results] == [1, 2, 3, 4]
+    if refine:  # the refiner ran: the boxes moved, and the stream holds its buffered sectors' points
+        with torch.inference_mode():
+            plain = model.detect([enc.sectors])[0]
+        assert not torch.allclose(plain.boxes, whole[0].boxes)
+        assert [len(p) for p in state.points] == [len(s) for s in sectors[1:]]
 
 
 def test_partial_turn_differs_from_full(model: PHiM):

@@ -24,6 +24,7 @@ from model.detector import PHiM
 from model.eval.metrics import MetricsConfig, crop_to_fov, evaluate
 from model.layers.head import decode
 from model.layers.phim_block import StreamLayout
+from model.layers.refine import refine
 from model.precision import autocast, check_precision
 
 
@@ -74,6 +75,8 @@ def predict_scan(model: PHiM, scan: LabeledScan, precision: Precision = Precisio
         enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
         maps = model.predict([enc.sectors[: b + 1] for b in range(n)])  # float32 maps
     dets = decode(maps, cfg.head, cfg.bev)
+    if model.refiner is not None:  # prediction b covers sectors 0 .. b
+        dets = [refine(model.refiner, d, torch.cat(sectors[: b + 1])) for b, d in enumerate(dets)]
     preds = [
         crop_prediction(
             Predictions(d.boxes.cpu().numpy(), d.scores.cpu().numpy(), d.labels.cpu().numpy()), b, scan, n

@@ -29,6 +29,7 @@ from model.graph.buckets import CapacityPlanner, batch_bucket, row_bucket
 from model.graph.slots import GraphStreamState, SlotState, StateSlots, StepStates, from_stream_state
 from model.graph.step import STATS, Capacity, GraphStep
 from model.layers.head import Candidates, select_detections
+from model.layers.refine import refine_stream
 from model.precision import autocast
 from model.stream import SectorResult, StreamingDetector, StreamState
 
@@ -164,7 +165,7 @@ class GraphStreamingDetector:
         """An eager state, written into a free slot; ValueError (and no slot taken) if a buffered sector has
         more than `sector_voxels` voxels."""
         tensors = self._graph_state(state, self.sector_voxels)  # first: a ValueError takes no slot
-        return self.slots.write(self.init_state(), tensors)
+        return replace(self.slots.write(self.init_state(), tensors), points=state.points)
 
     def _graph_state(self, state: StreamState, sector_voxels: int) -> GraphStreamState:
         d = self.model.backbone.cfg.d_model
@@ -191,11 +192,11 @@ class GraphStreamingDetector:
         if wedges is not None and any(ran_wedges[i] not in (wedges[i], EMPTY) for i in ok):
             self.crop_misses += 1  # a sector left its predicted wedge: the whole map, from the same inputs
             cand, stats, new = self._forward(points, inputs, False)
-        results = self._results(cand[:n], stats[:n], states)
+        results, kept = self._results(cand[:n], stats[:n], states, points)
         self._write_back(new, [states[i].slot for i in ok], ok)  # last: a failure before it changes nothing
         ran = set(ok)
         outcomes = [r if i in ran else self._rejected(voxels[i]) for i, r in enumerate(results)]
-        new_states = [s.stepped(ran_wedges[i]) if i in ran else s for i, s in enumerate(states)]
+        new_states = [s.stepped(ran_wedges[i], kept[i]) if i in ran else s for i, s in enumerate(states)]
         return outcomes, new_states
 
     def _crop_wedges(self, states: list[SlotState]) -> list[int] | None:
@@ -258,7 +259,7 @@ class GraphStreamingDetector:
         wedges = [0] * len(points) if crop and self.bev_crop else None
         inputs = self.inputs(points, fresh, batch_bucket(len(points)), wedges)
         cand, stats, _ = self._forward(points, inputs, wedges is not None)
-        return self._results(cand, stats[: len(points)], fresh)
+        return self._results(cand, stats[: len(points)], fresh, points)[0]
 
     def inputs(
         self,
@@ -352,15 +353,20 @@ class GraphStreamingDetector:
             voxels,
         )
 
-    def _results(self, cand: Tensor, stats: Tensor, states: list[SlotState]) -> list[SectorResult]:
-        """cand (n, K, 10), stats (n, 3) on the host -> each stream's detections after NMS."""
+    def _results(
+        self, cand: Tensor, stats: Tensor, states: list[SlotState], points: list[Tensor]
+    ) -> tuple[list[SectorResult], list[tuple[Tensor, ...]]]:
+        """cand (n, K, 10), stats (n, 3) on the host, the sectors' points -> each stream's detections after
+        NMS (and the box refiner), and the points each stream buffers for the refiner."""
         c = Candidates(cand[..., :7], cand[..., 7], cand[..., 8].long(), cand[..., 9])
         dets: list[Detections] = select_detections(c, self.cfg.head)
         kept, out_of_range = STATS.index("points_kept"), STATS.index("points_out_of_range")
-        return [
-            SectorResult(d, s.buffered_sectors + 1, int(st[kept]), int(st[out_of_range]))
-            for d, s, st in zip(dets, states, stats, strict=True)
-        ]
+        results, buffers = [], []
+        for d, s, st, p in zip(dets, states, stats, points, strict=True):
+            d, buffered = refine_stream(self.model.refiner, d, s.points, p, self.cfg.buffer_sectors)
+            results.append(SectorResult(d, s.buffered_sectors + 1, int(st[kept]), int(st[out_of_range])))
+            buffers.append(buffered)
+        return results, buffers
 
 
 def streaming_detector(

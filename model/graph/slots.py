@@ -41,6 +41,8 @@ class SlotState:
     generation: int  # of the slot when taken: a handle kept after its release is refused
     # the wedges (`model.graph.bev_crop`) of the last keep + 1 sectors its slot's steps ran, oldest first
     wedges: tuple[int, ...] = ()
+    # the buffered sectors' raw points (N_i, 3), oldest first, for the box refiner (host memory, not a slot)
+    points: tuple[Tensor, ...] = ()
 
     @property
     def buffered_sectors(self) -> int:
@@ -49,10 +51,10 @@ class SlotState:
     def fresh(self) -> SlotState:
         return SlotState(self.slot, 0, self.keep, self.generation)
 
-    def stepped(self, wedge: int) -> SlotState:
-        """This state after a step that ran a sector of `wedge`."""
+    def stepped(self, wedge: int, points: tuple[Tensor, ...] = ()) -> SlotState:
+        """This state after a step that ran a sector of `wedge`, buffering `points` for the refiner."""
         wedges = (*self.wedges, wedge)[-(self.keep + 1) :]
-        return SlotState(self.slot, self.sectors_seen + 1, self.keep, self.generation, wedges)
+        return SlotState(self.slot, self.sectors_seen + 1, self.keep, self.generation, wedges, points)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,152 @@
+"""The box refiner (model/layers/refine.py): the points it reads, the residual it predicts, its training
+(`phim train-refiner`), and the shipped model's refiner in streaming and on simulated scans."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import kitti_scan
+from test_streaming import assert_same_detections
+
+from model.checkpoint import init_weights, load_checkpoint, resolve_checkpoint
+from model.config import RefineConfig, tiny
+from model.data.sources import scan_source
+from model.detector import PHiM
+from model.eval.metrics import iou_matrix
+from model.eval.runner import scan_sectors
+from model.geometry.boxes import Detections
+from model.layers.phim_block import StreamLayout
+from model.layers.refine import (
+    apply_residual,
+    box_points,
+    box_points_reference,
+    refine,
+    refine_stream,
+    residual_target,
+)
+from model.sectors import split_turn
+from model.stream import StreamingDetector
+
+CFG = RefineConfig(points=16)
+
+
+def random_scene(seed: int, n: int = 5000, b: int = 40) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points (n, 4) clustered around b boxes (some far from every point, some with more than P points)."""
+    g = torch.Generator().manual_seed(seed)
+    centres = (torch.rand(b, 3, generator=g) - 0.5) * torch.tensor([80.0, 80.0, 2.0])
+    dims = torch.rand(b, 3, generator=g) * torch.tensor([5.0, 2.0, 1.5]) + 0.3
+    yaw = (torch.rand(b, 1, generator=g) - 0.5) * 4 * math.pi
+    boxes = torch.cat((centres, dims, yaw), 1)
+    near = centres[torch.randint(0, b // 2, (n,), generator=g), :] + torch.randn(n, 3, generator=g) * 2.0
+    points = torch.cat((near, torch.rand(n, 1, generator=g)), 1)
+    return points, boxes
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_grid_index_reads_the_points_every_point_against_every_box_reads(seed: int):
+    points, boxes = random_scene(seed)
+    local, counts = box_points(points, boxes, CFG)
+    ref_local, ref_counts = box_points_reference(points, boxes, CFG)
+    assert torch.equal(counts, ref_counts) and torch.equal(local, ref_local)
+    assert int((counts == 0).sum()) > 0 and int((counts > CFG.points).sum()) > 0  # both cases were seen
+    assert bool((local[counts == 0] == 0).all())
+    half = (boxes[:, 3:6] + torch.tensor(CFG.grow)) / 2
+    assert bool((local.abs() <= half[:, None, :] + 1e-5).all())  # in the grown box, in its frame
+
+
+def test_no_boxes_or_no_points():
+    points, boxes = random_scene(0)
+    for p, b in ((points, boxes[:0]), (points[:0], boxes)):
+        local, counts = box_points(p, b, CFG)
+        assert local.shape == (b.shape[0], CFG.points, 3) and counts.shape == (b.shape[0],)
+        assert int(counts.sum()) == 0
+
+
+def test_the_residual_target_turns_a_box_into_its_truth():
+    _, boxes = random_scene(3)
+    g = torch.Generator().manual_seed(4)
+    truth = boxes + torch.randn(boxes.shape, generator=g) * torch.tensor([0.5, 0.5, 0.2, 0.3, 0.2, 0.1, 0.4])
+    truth[:, 3:6] = truth[:, 3:6].abs() + 0.1
+    got = apply_residual(boxes, residual_target(boxes, truth))
+    torch.testing.assert_close(got[:, :6], truth[:, :6], atol=1e-4, rtol=1e-4)
+    dyaw = torch.remainder(got[:, 6] - truth[:, 6] + math.pi / 2, math.pi) - math.pi / 2  # on the axis
+    assert float(dyaw.abs().max()) < 1e-4
+
+
+def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_none():
+    refiner = PHiM(dataclasses.replace(tiny(), refine=RefineConfig())).refiner
+    sectors = [torch.randn(n, 4) for n in (10, 20, 30, 40, 50)]
+    det = Detections.empty()
+    buffered: tuple[torch.Tensor, ...] = ()
+    for s in sectors:
+        out, buffered = refine_stream(refiner, det, buffered, s, keep=3)
+        assert len(out) == 0
+    assert [len(p) for p in buffered] == [30, 40, 50] and buffered[0].shape[1] == 3
+    assert refine_stream(None, det, buffered, sectors[0], keep=3) == (det, ())
+
+
+def test_train_refiner_writes_the_frozen_detector_with_a_refiner_and_train_starts_without_it(tmp_path: Path):
+    out = tmp_path / "refined.pt"
+    cmd = [sys.executable, "-m", "phim", "train-refiner", "--out", str(out), "--seed", "5"]
+    subprocess.run([*cmd, "--scans", "2", "--epochs", "1", "--threads", "1"], check=True, capture_output=True)
+    refined = load_checkpoint(out, expected=tiny())  # `tiny` with a refiner is still `tiny`
+    assert refined.cfg.refine == RefineConfig() and refined.refiner is not None
+    default, _ = resolve_checkpoint("default")
+    plain = {k: v for k, v in refined.state_dict().items() if not k.startswith("refiner.")}
+    base = {k: v for k, v in default.state_dict().items() if not k.startswith("refiner.")}
+    assert plain.keys() == base.keys() and all(torch.equal(plain[k], base[k]) for k in plain)  # frozen
+    state = init_weights(out, dataclasses.replace(refined.cfg, refine=None))
+    assert not any(k.startswith("refiner.") for k in state)
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    model, _ = resolve_checkpoint("default")
+    if model.refiner is None:
+        pytest.fail("the shipped default has no box refiner")
+    return model.eval()
+
+
+@pytest.mark.samples
+def test_the_shipped_refiner_streams_as_the_whole_turn_and_reads_the_buffered_points(shipped):
+    sectors = split_turn(kitti_scan(0), shipped.cfg.sectors_per_turn)
+    det = StreamingDetector(shipped)
+    state = det.init_state()
+    for s in sectors:
+        (result,), (state,) = det.step([s], [state])
+    with torch.inference_mode():
+        whole, enc = shipped.forward_turn(sectors)
+        plain = shipped.detect([enc.sectors])[0]
+        _, counts = box_points(torch.cat(sectors), plain.boxes, shipped.refiner.cfg)
+        alone = refine(shipped.refiner, plain, sectors[-1])  # without the buffered sectors' points
+    assert int((counts > 0).sum()) >= 20  # boxes with points: the refiner's input matters
+    assert_same_detections(result.detections, whole[0])
+    assert not torch.allclose(alone.boxes.sort(0).values, whole[0].boxes.sort(0).values, atol=1e-3)
+
+
+def test_the_shipped_refiner_brings_the_boxes_closer_to_the_truth(shipped):
+    """On held-out simulated scans (stream 7): the refined boxes overlap their true boxes more."""
+    source = scan_source("sim", 7, shuffle=False)
+    before, after = [], []
+    for i in range(3):
+        scan = source(i)
+        n = shipped.cfg.sectors_per_turn
+        sectors = scan_sectors(scan, shipped.cfg.vfe.point_features, n)
+        with torch.inference_mode():
+            layout = StreamLayout.single_stream(n, shipped.device)
+            enc = shipped.encode(sectors, layout, shipped.init_states(1))
+            plain = shipped.detect([enc.sectors])[0]
+            refined = refine(shipped.refiner, plain, torch.cat(sectors))
+        for det, into in ((plain, before), (refined, after)):
+            keep = det.scores.numpy() >= 0.3
+            iou = iou_matrix(det.boxes.numpy()[keep], scan.gt.boxes)
+            into.extend(iou.max(1)[iou.max(1) >= 0.3])
+    b, a = np.median(before), np.median(after)
+    assert a > b + 0.05, (b, a)
