@@ -35,9 +35,13 @@ CPU_IMPLS = [impl for impl in ScanImpl if scan_available(impl, CPU)]
 BF16 = {"device_type": "cpu", "dtype": torch.bfloat16}
 
 # bf16 against fp32 on a KITTI scan (docs/benchmarks.md, "bf16 against fp32": 97.9 % over six scans, at most
-# 2.7 cm and 0.015 in score): fp32 boxes scoring at least MIN_SCORE need a bf16 box of their class within
-# MATCH_M metres for at least MIN_MATCHED of them, and matched scores differ by at most MAX_SCORE_DIFF
-MIN_SCORE, MATCH_M, MIN_MATCHED, MAX_SCORE_DIFF = 0.3, 0.05, 0.95, 0.03
+# 2.7 cm and 0.015 in score, the detector alone): fp32 boxes scoring at least MIN_SCORE need a bf16 box of
+# their class within MATCH_M metres for at least MIN_MATCHED of them, and matched scores differ by at most
+# MAX_SCORE_DIFF. The shipped box refiner re-reads the points at each box's grown faces, so a detector box
+# that bf16 moves a little may read other points: on simulated scan 0 of stream 7, 11 % of the boxes moved
+# 5-10 cm, none more, and on KITTI 000000 (fixed step) 1 of 19 more than 10 cm (2026-11-29); its IoU score
+# puts fewer boxes above 0.3 (11 on KITTI 000000)
+MIN_SCORE, MATCH_M, MIN_MATCHED, MAX_SCORE_DIFF = 0.2, 0.1, 0.9, 0.03
 
 
 def test_fp32_is_no_autocast_and_bf16_is():
@@ -162,7 +166,7 @@ def _float_tensors(state) -> list[torch.Tensor]:
     return [*state.conv, *state.ssm, state.feats, state.maps]  # GraphStreamState: a slot's tensors
 
 
-def assert_agree(fp32: Detections, bf16: Detections, min_boxes: int = 20) -> None:
+def assert_agree(fp32: Detections, bf16: Detections, min_boxes: int = 15) -> None:
     """Most of the fp32 boxes scoring >= MIN_SCORE (at least `min_boxes` of them) have a bf16 box of their
     class within MATCH_M; their scores differ by at most MAX_SCORE_DIFF."""
     keep = fp32.scores >= MIN_SCORE
