@@ -27,6 +27,7 @@ from model.layers.refine import (
     apply_residual,
     box_points,
     box_points_reference,
+    box_points_torch,
     refine,
     refine_stream,
     residual_target,
@@ -50,21 +51,25 @@ def random_scene(seed: int, n: int = 5000, b: int = 40) -> tuple[torch.Tensor, t
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_the_grid_index_reads_the_points_every_point_against_every_box_reads(seed: int):
+@pytest.mark.parametrize("lookup", [box_points, box_points_torch])
+def test_the_grid_index_reads_the_points_every_point_against_every_box_reads(lookup, seed: int):
+    """The numba kernel (`box_points` on the CPU) and the tensor ops (on CUDA) against the plain twin."""
     points, boxes = random_scene(seed)
-    local, counts = box_points(points, boxes, CFG)
+    local, counts = lookup(points, boxes, CFG)
     ref_local, ref_counts = box_points_reference(points, boxes, CFG)
-    assert torch.equal(counts, ref_counts) and torch.equal(local, ref_local)
+    assert torch.equal(counts, ref_counts)
+    torch.testing.assert_close(local, ref_local, rtol=0, atol=1e-5)
     assert int((counts == 0).sum()) > 0 and int((counts > CFG.points).sum()) > 0  # both cases were seen
     assert bool((local[counts == 0] == 0).all())
     half = (boxes[:, 3:6] + torch.tensor(CFG.grow)) / 2
     assert bool((local.abs() <= half[:, None, :] + 1e-5).all())  # in the grown box, in its frame
 
 
-def test_no_boxes_or_no_points():
+@pytest.mark.parametrize("lookup", [box_points, box_points_torch])
+def test_no_boxes_or_no_points(lookup):
     points, boxes = random_scene(0)
     for p, b in ((points, boxes[:0]), (points[:0], boxes)):
-        local, counts = box_points(p, b, CFG)
+        local, counts = lookup(p, b, CFG)
         assert local.shape == (b.shape[0], CFG.points, 3) and counts.shape == (b.shape[0],)
         assert int(counts.sum()) == 0
 

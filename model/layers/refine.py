@@ -9,8 +9,9 @@ range) predicts a residual (dx, dy, dz in the box frame, log size ratios, yaw ch
 refined box's 3D IoU; the refined score is score^(1 - a) * iou^a (`RefineConfig.iou_weight`), as the
 head's IoU rectification.
 
-`box_points` finds the points through a grid index (one sort of the points); `box_points_reference`, the
-plain twin, tests every point against every box. tests/test_refine.py holds them equal.
+`box_points` finds the points through a grid index of 1 m cells: a numba kernel on the CPU
+(`refine_cpu`), tensor ops elsewhere (`box_points_torch`); `box_points_reference`, the plain twin, tests
+every point against every box. tests/test_refine.py holds them equal.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from torch import Tensor, nn
 
 from model.config import RefineConfig
 from model.geometry.boxes import Detections
+from model.layers.refine_cpu import box_points_cpu
 
 _CELL = 1.0  # metres: the grid index's cells
 _EPS = 1e-3  # metres around a box's bounding rectangle
@@ -57,6 +59,14 @@ def box_points_reference(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tu
 
 
 def box_points(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[Tensor, Tensor]:
+    """`box_points_reference`'s result: on CPU tensors by a numba kernel (`refine_cpu`), else by tensor ops
+    (`box_points_torch`)."""
+    if points.device.type == "cpu":
+        return box_points_cpu(points, boxes, cfg.grow, cfg.points, _CELL, _EPS)
+    return box_points_torch(points, boxes, cfg)
+
+
+def box_points_torch(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[Tensor, Tensor]:
     """`box_points_reference`'s result through a grid index of 1 m cells (one sort of the points by cell):
     each box tests the points of the cells under its grown outline's bounding rectangle, one contiguous run
     of the sorted points per column of cells."""
