@@ -76,9 +76,12 @@ def box_points_torch(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[
         return _inside(points, boxes, none, none, cfg)
     cell = torch.floor(points[:, :2] / _CELL).long()  # (N, 2)
     key, order = torch.sort(cell[:, 0] * _KEY + cell[:, 1], stable=True)  # (N,)
-    corners = _grown_corners(boxes, cfg)  # (B, 4, 2)
-    lo = torch.floor((corners.amin(1) - _EPS) / _CELL).long()  # (B, 2) the rectangle's cells, with a margin
-    hi = torch.floor((corners.amax(1) + _EPS) / _CELL).long()  # for the rounding of the corners
+    grow = boxes.new_tensor(cfg.grow)
+    half_l, half_w = (boxes[:, 3] + grow[0]) / 2, (boxes[:, 4] + grow[1]) / 2
+    c, s = torch.cos(boxes[:, 6]).abs(), torch.sin(boxes[:, 6]).abs()
+    extent = torch.stack((c * half_l + s * half_w, s * half_l + c * half_w), 1) + _EPS  # (B, 2) half sides
+    lo = torch.floor((boxes[:, :2] - extent) / _CELL).long()  # (B, 2) the bounding rectangle's cells
+    hi = torch.floor((boxes[:, :2] + extent) / _CELL).long()
     columns = hi[:, 0] - lo[:, 0] + 1  # (B,)
     box = torch.arange(b, device=dev).repeat_interleave(columns)  # (C,) one row per column of cells
     ix = lo[box, 0] + torch.arange(int(columns.sum()), device=dev) - (torch.cumsum(columns, 0) - columns)[box]
@@ -88,23 +91,6 @@ def box_points_torch(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[
     run = torch.arange(int(count.sum()), device=dev) - first.repeat_interleave(count)
     point = order[start.repeat_interleave(count) + run]  # (T,)
     return _inside(points, boxes, box.repeat_interleave(count), point, cfg)
-
-
-def _grown_corners(boxes: Tensor, cfg: RefineConfig) -> Tensor:
-    """boxes (B, 7) -> (B, 4, 2) the BEV corners of the boxes grown by cfg.grow."""
-    half_l = (boxes[:, 3] + cfg.grow[0]) / 2
-    half_w = (boxes[:, 4] + cfg.grow[1]) / 2
-    c, s = torch.cos(boxes[:, 6]), torch.sin(boxes[:, 6])
-    sl = half_l.new_tensor([1.0, 1.0, -1.0, -1.0])
-    sw = half_l.new_tensor([1.0, -1.0, -1.0, 1.0])
-    u, v = sl * half_l[:, None], sw * half_w[:, None]  # (B, 4) along and across the heading
-    return torch.stack(
-        (
-            boxes[:, None, 0] + c[:, None] * u - s[:, None] * v,
-            boxes[:, None, 1] + s[:, None] * u + c[:, None] * v,
-        ),
-        2,
-    )
 
 
 def _inside(

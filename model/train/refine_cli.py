@@ -9,8 +9,9 @@ from pathlib import Path
 
 import click
 
+from model.config import RefineConfig
 from model.tools.options import checkpoint_option, threads_option
-from model.train.refine import Proposals
+from model.train.refine import MATCH_IOU, Proposals
 
 
 @click.command()
@@ -40,7 +41,6 @@ def train_refiner_cmd(
     import torch
 
     from model.checkpoint import read_checkpoint, resolve_checkpoint, save_checkpoint
-    from model.config import RefineConfig
     from model.detector import PHiM
     from model.train.refine import fit
 
@@ -54,10 +54,9 @@ def train_refiner_cmd(
     weights = {k: v for k, v in detector.state_dict().items() if not k.startswith("refiner.")}
     model.load_state_dict(weights, strict=False)
     with ProcessPoolExecutor(len(seeds), mp_context=multiprocessing.get_context("spawn")) as pool:
-        data = Proposals.cat(list(pool.map(_stream_proposals, [(path, s, scans) for s in seeds])))
-    click.echo(
-        f"{len(data)} boxes from {len(seeds)} x {scans} scans, {int((data.iou >= 0.3).sum())} on objects"
-    )
+        data = Proposals.cat(list(pool.map(_stream_proposals, [(path, cfg.refine, s, scans) for s in seeds])))
+    on_objects = int((data.iou >= MATCH_IOU).sum())
+    click.echo(f"{len(data)} boxes from {len(seeds)} x {scans} scans, {on_objects} on objects")
     fit(model.refiner, data, epochs, lr)
     meta = read_checkpoint(path)["meta"] | {
         "refiner": {"detector": path.name, "seeds": list(seeds), "scans": scans, "epochs": epochs, "lr": lr}
@@ -66,18 +65,15 @@ def train_refiner_cmd(
     click.echo(f"model: {out}")
 
 
-def _stream_proposals(job: tuple[Path, int, int]) -> Proposals:
+def _stream_proposals(job: tuple[Path, RefineConfig, int, int]) -> Proposals:
     """In a worker process of one thread: the detector's proposals on `scans` scans of sim stream `seed`."""
     import torch
 
     from model.checkpoint import load_checkpoint
-    from model.config import RefineConfig
     from model.data.sources import scan_source
     from model.train.refine import proposals
 
-    path, seed, scans = job
+    path, cfg, seed, scans = job
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    detector = load_checkpoint(path)
-    cfg = detector.cfg.refine or RefineConfig()
-    return proposals(detector, cfg, scan_source("sim", seed, shuffle=False), scans)
+    return proposals(load_checkpoint(path), cfg, scan_source("sim", seed, shuffle=False), scans)
