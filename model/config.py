@@ -176,7 +176,7 @@ class HeadConfig:
 class RefineConfig:
     """The box refiner (model.layers.refine): a second stage that corrects each box from its raw points."""
 
-    points: int = 128  # points read per box
+    points: int = 64  # points read per box (128 gained 0.010 vehicle AP on sim for twice the PointNet time)
     grow: tuple[float, float, float] = (1.0, 1.0, 0.5)  # metres added to l, w, h for the points read
     hidden: int = 128  # channels of the pooled point feature
     iou_weight: float = 0.5  # refined score = score^(1 - a) * predicted IoU^a

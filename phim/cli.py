@@ -59,6 +59,7 @@ COMMANDS: dict[str, Entry | Group] = {
             "engines": Entry(
                 "model.tools.cli:bench_engines_cmd", "Engines against each other in one process: ratios."
             ),
+            "refiner": Entry("model.tools.cli:bench_refiner_cmd", "The box refiner's share of a step."),
             "ops": Entry("model.tools.cli:bench_ops_cmd", "Torch ops and host syncs of one streaming step."),
             "sim": Entry("model.data.sim.cli:bench_sim_cmd", "Simulator throughput, single-threaded."),
             "server": Entry("clients.bench.server:bench_server_cmd", "The server's own overhead per sector."),

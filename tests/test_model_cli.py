@@ -1,4 +1,4 @@
-"""`phim model info`, `phim bench model` and `phim bench engines` as commands (their numbers are
+"""`phim model info`, `phim bench model`, `engines`, `refiner` and `ops` as commands (their numbers are
 benchmarks, not checked here)."""
 
 from __future__ import annotations
@@ -10,6 +10,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from model.checkpoint import resolve_checkpoint, save_checkpoint
+from model.config import tiny
+from model.detector import PHiM
 from phim.cli import main as app
 
 
@@ -61,6 +64,21 @@ def test_bench_engines_alternates_the_engines_and_divides_by_the_first() -> None
 def test_bench_engines_names_a_bad_engine_list(engines: str) -> None:
     result = CliRunner().invoke(app, ["bench", "engines", "--engines", engines])
     assert result.exit_code == 2 and "--engines" in result.output and "two or more different" in result.output
+
+
+def test_bench_refiner_times_the_shipped_refiner_on_a_whole_turns_boxes() -> None:
+    result = CliRunner().invoke(app, ["bench", "refiner", "--repeats", "2", "--json"])
+    assert result.exit_code == 0, result.output
+    bench = json.loads(result.output.strip().splitlines()[-1])
+    assert bench["config"] == "tiny" and bench["repeats"] == 2 and bench["boxes"] > 0 and bench["points"] > 0
+    assert bench["points_per_box"] == resolve_checkpoint("default")[0].cfg.refine.points
+    assert min(bench["lookup_p50_ms"], bench["pointnet_p50_ms"], bench["refine_p50_ms"]) > 0
+
+
+def test_bench_refiner_names_a_checkpoint_without_one(tmp_path: Path) -> None:
+    save_checkpoint(tmp_path / "plain.pt", PHiM(tiny()), {})
+    result = CliRunner().invoke(app, ["bench", "refiner", "--checkpoint", str(tmp_path / "plain.pt")])
+    assert result.exit_code == 2 and "--checkpoint" in result.output and "no box refiner" in result.output
 
 
 def test_bench_ops_credits_every_op_to_a_model_function() -> None:

@@ -50,16 +50,18 @@ def random_scene(seed: int, n: int = 5000, b: int = 40) -> tuple[torch.Tensor, t
     return points, boxes
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize(("seed", "n"), [(0, 5000), (1, 5000), (2, 5000), (3, 60_000)])
 @pytest.mark.parametrize("lookup", [box_points, box_points_torch])
-def test_the_grid_index_reads_the_points_every_point_against_every_box_reads(lookup, seed: int):
-    """The numba kernel (`box_points` on the CPU) and the tensor ops (on CUDA) against the plain twin."""
-    points, boxes = random_scene(seed)
+def test_the_grid_index_reads_the_points_every_point_against_every_box_reads(lookup, seed: int, n: int):
+    """The numba kernel (`box_points` on the CPU) and the tensor ops (on CUDA) against the plain twin; the
+    large scene has boxes of hundreds of points (the kernel's radix sort, several passes)."""
+    points, boxes = random_scene(seed, n)
     local, counts = lookup(points, boxes, CFG)
     ref_local, ref_counts = box_points_reference(points, boxes, CFG)
     assert torch.equal(counts, ref_counts)
     torch.testing.assert_close(local, ref_local, rtol=0, atol=1e-5)
     assert int((counts == 0).sum()) > 0 and int((counts > CFG.points).sum()) > 0  # both cases were seen
+    assert n < 10_000 or int(counts.max()) > 500
     assert bool((local[counts == 0] == 0).all())
     half = (boxes[:, 3:6] + torch.tensor(CFG.grow)) / 2
     assert bool((local.abs() <= half[:, None, :] + 1e-5).all())  # in the grown box, in its frame
@@ -99,10 +101,10 @@ def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_
 
 def test_train_refiner_writes_the_frozen_detector_with_a_refiner_and_train_starts_without_it(tmp_path: Path):
     out = tmp_path / "refined.pt"
-    cmd = [sys.executable, "-m", "phim", "train-refiner", "--out", str(out), "--seed", "5"]
+    cmd = [sys.executable, "-m", "phim", "train-refiner", "--out", str(out), "--seed", "5", "--points", "8"]
     subprocess.run([*cmd, "--scans", "2", "--epochs", "1", "--threads", "1"], check=True, capture_output=True)
     refined = load_checkpoint(out, expected=tiny())  # `tiny` with a refiner is still `tiny`
-    assert refined.cfg.refine == RefineConfig() and refined.refiner is not None
+    assert refined.cfg.refine == RefineConfig(points=8) and refined.refiner is not None
     default, _ = resolve_checkpoint("default")
     plain = {k: v for k, v in refined.state_dict().items() if not k.startswith("refiner.")}
     base = {k: v for k, v in default.state_dict().items() if not k.startswith("refiner.")}

@@ -56,6 +56,7 @@ def _box_points(points, boxes, grow, p, cell, eps, local, counts):  # pragma: no
             order[fill[where[i]]] = i
             fill[where[i]] += 1
     found = np.empty(points.shape[0], np.int64)
+    spare = np.empty(points.shape[0], np.int64)
     for b in range(boxes.shape[0]):
         c, s = np.float32(math.cos(boxes[b, 6])), np.float32(math.sin(boxes[b, 6]))
         half = (boxes[b, 3:6] + grow) / np.float32(2.0)
@@ -72,13 +73,39 @@ def _box_points(points, boxes, grow, p, cell, eps, local, counts):  # pragma: no
         counts[b] = n
         if n == 0:
             continue
-        inside = np.sort(found[:n])
+        inside = _sorted(found[:n], spare)
         for j in range(p):
             i = inside[(j * n) // p]
             dx, dy = points[i, 0] - boxes[b, 0], points[i, 1] - boxes[b, 1]
             local[b, j, 0] = c * dx + s * dy
             local[b, j, 1] = -s * dx + c * dy
             local[b, j, 2] = points[i, 2] - boxes[b, 2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _sorted(a, spare):  # pragma: no cover - compiled
+    """a (n,) distinct non-negative int64 -> the same sorted ascending: a radix sort of 8 bits a pass (a box
+    on vegetation holds thousands of points: np.sort took 2 of a KITTI turn's 3.7 ms), np.sort for a few; `a`
+    and spare (>= n,) are overwritten."""
+    n = a.shape[0]
+    if n <= 64:
+        return np.sort(a)
+    src, dst = a, spare[:n]
+    count = np.empty(257, np.int64)
+    shift, top = 0, a.max()
+    while (top >> shift) > 0:
+        count[:] = 0
+        for i in range(n):
+            count[((src[i] >> shift) & 255) + 1] += 1
+        for k in range(256):
+            count[k + 1] += count[k]
+        for i in range(n):
+            d = (src[i] >> shift) & 255
+            dst[count[d]] = src[i]
+            count[d] += 1
+        src, dst = dst, src
+        shift += 8
+    return src
 
 
 def box_points_cpu(

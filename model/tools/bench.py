@@ -1,6 +1,7 @@
 """`phim bench model`: per-sector latency of the streaming model with its buffer loaded; `phim bench engines`:
 engines against each other in one process (this machine's speed drifts between processes by more than the
-differences sought, so a ratio is measured in alternating turns of one run)."""
+differences sought, so a ratio is measured in alternating turns of one run); `phim bench refiner`: the box
+refiner's share of a step."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from torch import Tensor
 from model.config import Engine, Precision
 from model.detector import PHiM
 from model.graph.engine import Detector, GraphStreamingDetector, SectorRejected, streaming_detector
+from model.layers.phim_block import StreamLayout
+from model.layers.refine import box_points, refine
 from model.ops.scan import resolve_scan
 from model.precision import autocast
 from model.sectors import split_turn
@@ -206,4 +209,62 @@ def compare_engines(
         p90_ms={e.value: round(v[int(0.9 * (len(v) - 1))], 2) for e, v in flat.items()},
         ratio_p50={e.value: round(p50[e] / p50[base], 3) for e in engines},
         round_ratios={e.value: [round(x, 3) for x in v] for e, v in per_round.items()},
+    )
+
+
+@dataclass(frozen=True)
+class RefinerBench:
+    config: str
+    device: str
+    threads: int
+    points: int  # the turn's points, which every step's refiner searches
+    boxes: int  # the detector's boxes on the whole turn, which it refines
+    points_per_box: int  # RefineConfig.points
+    repeats: int
+    lookup_p50_ms: float  # box_points
+    pointnet_p50_ms: float  # the BoxRefiner forward
+    refine_p50_ms: float  # refine(): both, the residuals and the re-sort
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def bench_refiner(model: PHiM, turn: Tensor, repeats: int = 30) -> RefinerBench:
+    """The box refiner on the detector's boxes for the whole `turn` (what it does after every step with its
+    buffer loaded), `repeats` times each: its point lookup, its PointNet and all of `refine`."""
+    if model.refiner is None:
+        raise ValueError(f"the model ({model.cfg.name}) has no box refiner")
+    dev, cfg = model.device, model.refiner.cfg
+    sectors = [s.to(dev) for s in split_turn(turn, model.cfg.sectors_per_turn)]
+    points = torch.cat(sectors)[:, :3]
+    with torch.inference_mode():
+        enc = model.encode(sectors, StreamLayout.single_stream(len(sectors), dev), model.init_states(1))
+        det = model.detect([enc.sectors])[0]
+        local, counts = box_points(points, det.boxes, cfg)
+        runs = {
+            "lookup": lambda: box_points(points, det.boxes, cfg),
+            "pointnet": lambda: model.refiner(local, counts, det.boxes, det.scores, det.labels),
+            "refine": lambda: refine(model.refiner, det, points),
+        }
+        times: dict[str, list[float]] = {k: [] for k in runs}
+        for i in range(repeats + 2):  # interleaved; the first two are warm-up
+            for k, run in runs.items():
+                _sync(dev)
+                t0 = time.perf_counter()
+                run()
+                _sync(dev)
+                if i >= 2:
+                    times[k].append((time.perf_counter() - t0) * 1e3)
+    p50 = {k: round(statistics.median(v), 2) for k, v in times.items()}
+    return RefinerBench(
+        config=model.cfg.name,
+        device=_device_name(dev),
+        threads=torch.get_num_threads(),
+        points=int(points.shape[0]),
+        boxes=len(det),
+        points_per_box=cfg.points,
+        repeats=repeats,
+        lookup_p50_ms=p50["lookup"],
+        pointnet_p50_ms=p50["pointnet"],
+        refine_p50_ms=p50["refine"],
     )

@@ -1,4 +1,5 @@
-"""`phim model info`, `phim bench model` and `phim bench ops` (torch is imported when a command runs)."""
+"""`phim model info`, `phim bench model`, `engines`, `refiner` and `ops` (torch is imported when a command
+runs)."""
 
 from __future__ import annotations
 
@@ -42,8 +43,9 @@ def load_turn(points: Path | None, fallback_kitti: bool) -> tuple[torch.Tensor, 
     return torch.from_numpy(synthetic_turn(seed=0)), "synthetic_turn(seed=0)"
 
 
-def load_model(config: str, checkpoint: str | None, device: str, threads: int = 0) -> PHiM:
-    """A fresh model of `config` (no checkpoint) or the weights of `checkpoint`, on `device`."""
+def load_model(config: str | None, checkpoint: str | None, device: str, threads: int = 0) -> PHiM:
+    """A fresh model of `config` (no checkpoint) or the weights of `checkpoint` (of `config`, or of any
+    config with None), on `device`."""
     import torch
 
     from model.checkpoint import checkpoint_path, load_checkpoint
@@ -52,8 +54,11 @@ def load_model(config: str, checkpoint: str | None, device: str, threads: int = 
 
     if threads:
         torch.set_num_threads(threads)
-    dev, cfg = pick_device(device), get_config(config)
-    return load_checkpoint(checkpoint_path(checkpoint), cfg, dev) if checkpoint else PHiM(cfg).to(dev)
+    dev, cfg = pick_device(device), get_config(config) if config else None
+    if checkpoint:
+        return load_checkpoint(checkpoint_path(checkpoint), cfg, dev)
+    assert cfg is not None, "a fresh model needs a config"
+    return PHiM(cfg).to(dev)
 
 
 @click.command()
@@ -216,6 +221,38 @@ def bench_engines_cmd(
             f"| {e} | {result['p50_ms'][e]} | {result['p90_ms'][e]} | {result['ratio_p50'][e]} "
             f"| {min(per):.3f}-{max(per):.3f} |"
         )
+
+
+@click.command()
+@points_option(kitti_first=True)
+@device_option()
+@threads_option
+@checkpoint_option("default")
+@click.option("--repeats", type=click.IntRange(1), default=30, show_default=True, help="Timed runs of each.")
+@json_option
+def bench_refiner_cmd(
+    points: Path | None, device: str, threads: int, checkpoint: str, repeats: int, as_json: bool
+) -> None:
+    """The box refiner on a whole turn's boxes, as after every step: its lookup, its PointNet, all of it."""
+    from model.tools.bench import bench_refiner
+
+    logging.basicConfig(level=logging.WARNING)
+    model = load_model(None, checkpoint, device, threads).eval()
+    turn, source = load_turn(points, fallback_kitti=True)
+    try:
+        result = bench_refiner(model, turn, repeats).to_dict() | {"input": source}
+    except ValueError as e:
+        raise click.BadParameter(str(e), param_hint="--checkpoint") from e
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    click.echo(
+        f"input: {source} ({result['points']} points, {result['boxes']} boxes, {result['points_per_box']} "
+        f"points read per box); {result['config']} on {result['device']}, {result['threads']} threads"
+    )
+    click.echo("\n| part | p50 ms |\n|---|---|")
+    for part in ("lookup", "pointnet", "refine"):
+        click.echo(f"| {part} | {result[part + '_p50_ms']} |")
 
 
 @click.command()

@@ -31,9 +31,23 @@ from model.train.refine import MATCH_IOU, Proposals
 @click.option("--scans", type=click.IntRange(1), default=800, show_default=True, help="Scans per stream.")
 @click.option("--epochs", type=click.IntRange(1), default=8, show_default=True, help="Passes over the boxes.")
 @click.option("--lr", type=float, default=2e-3, show_default=True, help="Peak learning rate (one-cycle).")
+@click.option(
+    "--points",
+    type=click.IntRange(1),
+    default=RefineConfig.points,
+    show_default=True,
+    help="Points the refiner reads per box.",
+)
 @threads_option
 def train_refiner_cmd(
-    checkpoint: str, out: Path, seeds: tuple[int, ...], scans: int, epochs: int, lr: float, threads: int
+    checkpoint: str,
+    out: Path,
+    seeds: tuple[int, ...],
+    scans: int,
+    epochs: int,
+    lr: float,
+    points: int,
+    threads: int,
 ) -> None:
     """Train the box refiner on the detector's own boxes on simulated scans (the detector is frozen)."""
     import dataclasses
@@ -48,7 +62,7 @@ def train_refiner_cmd(
     if threads:
         torch.set_num_threads(threads)
     detector, path = resolve_checkpoint(checkpoint)
-    cfg = dataclasses.replace(detector.cfg, refine=detector.cfg.refine or RefineConfig())
+    cfg = dataclasses.replace(detector.cfg, refine=RefineConfig(points=points))
     torch.manual_seed(0)  # the refiner's initial weights
     model = PHiM(cfg)
     weights = {k: v for k, v in detector.state_dict().items() if not k.startswith("refiner.")}
