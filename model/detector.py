@@ -61,6 +61,11 @@ class PHiM(nn.Module):
     def device(self) -> torch.device:
         return next(self.parameters()).device
 
+    def drop_refiner(self) -> None:
+        """The detector alone from here on, without its box refiner (a server's `--no-refiner`)."""
+        self.refiner = None
+        self.cfg = dataclasses.replace(self.cfg, refine=None)
+
     def init_states(self, num_streams: int) -> list[MambaState]:
         return self.backbone.init_states(num_streams, self.device)
 

@@ -73,6 +73,8 @@ def build_detector(settings: Settings) -> tuple[Detector, str]:
             load_checkpoint(settings.checkpoint, expected, device),
             f"checkpoint {settings.checkpoint}",
         )
+    if not settings.refiner:
+        model.drop_refiner()
     det = streaming_detector(
         model,
         Engine(settings.engine),
@@ -83,12 +85,13 @@ def build_detector(settings: Settings) -> tuple[Detector, str]:
         settings.bev_crop,
     )
     log.info(
-        "model: config=%s device=%s engine=%s precision=%s scan=%s weights=%s",
+        "model: config=%s device=%s engine=%s precision=%s scan=%s refiner=%s weights=%s",
         det.cfg.name,
         det.device,
         settings.engine,
         settings.precision,
         det.cfg.backbone.mamba.scan.value,
+        "yes" if model.refiner is not None else "no",
         source,
     )
     return det, source

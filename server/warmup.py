@@ -105,6 +105,7 @@ def model_info(det: Detector, source: str, worker_id: str) -> dict[str, Any]:
         "sector_voxels": det.sector_voxels if graph else None,
         "sector_points": det.sector_points if graph else None,
         "bev_crop": det.bev_crop if graph else None,
+        "refiner": cfg.refine is not None,  # the box refiner runs (docs/model.md)
         **slot_info(det),
         "classes": list(cfg.head.class_names),
         "sectors_per_turn": cfg.sectors_per_turn,

@@ -29,13 +29,13 @@ def test_model_info_paper_is_within_ten_percent_of_the_papers_parameters(tmp_pat
     assert info["gflops"] > 0 and info["input_points"] == 4000
 
 
-@pytest.mark.parametrize("precision", ["fp32", "bf16"])
-def test_bench_model_runs_the_shipped_weights(precision: str) -> None:
+@pytest.mark.parametrize(("precision", "refiner"), [("fp32", "--refiner"), ("bf16", "--no-refiner")])
+def test_bench_model_runs_the_shipped_weights(precision: str, refiner: str) -> None:
     args = ["bench", "model", "--config", "tiny", "--checkpoint", "default", "--turns", "1", "--json"]
-    result = CliRunner().invoke(app, [*args, "--precision", precision])
+    result = CliRunner().invoke(app, [*args, "--precision", precision, refiner])
     assert result.exit_code == 0, result.output
     bench = json.loads(result.output.strip().splitlines()[-1])
-    assert bench["precision"] == precision
+    assert bench["precision"] == precision and bench["refiner"] is (refiner == "--refiner")
     assert bench["device"] == "cpu" and bench["sectors_per_turn"] == 4 and bench["iterations"] == 4
     assert 0 < bench["p50_ms"] <= bench["p90_ms"] and bench["peak_mem_mb"] > 0
 
@@ -48,10 +48,11 @@ def test_bench_model_names_a_missing_checkpoint() -> None:
 
 def test_bench_engines_alternates_the_engines_and_divides_by_the_first() -> None:
     args = ["bench", "engines", "--config", "tiny", "--checkpoint", "default", "--engines", "eager,fixed"]
-    result = CliRunner().invoke(app, [*args, "--rounds", "3", "--scan", "chunked", "--json"])
+    result = CliRunner().invoke(app, [*args, "--rounds", "3", "--scan", "chunked", "--no-refiner", "--json"])
     assert result.exit_code == 0, result.output
     bench = json.loads(result.output.strip().splitlines()[-1])
     assert bench["engines"] == ["eager", "fixed"] and bench["rounds"] == 3 and bench["device"] == "cpu"
+    assert bench["refiner"] is False
     assert bench["scan"] == "chunked"  # the eager engine's, as asked
     p50 = bench["p50_ms"]
     assert 0 < p50["fixed"] <= bench["p90_ms"]["fixed"] and 0 < p50["eager"] <= bench["p90_ms"]["eager"]

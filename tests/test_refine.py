@@ -1,5 +1,6 @@
 """The box refiner (model/layers/refine.py): the points it reads, the residual it predicts, its training
-(`phim train-refiner`), and the shipped model's refiner in streaming and on simulated scans."""
+(`phim train-refiner`), the shipped model's refiner in streaming and on simulated scans, and a server
+with and without it (`--no-refiner`)."""
 
 from __future__ import annotations
 
@@ -9,12 +10,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 import torch
 from conftest import kitti_scan
+from server_helpers import assert_same_boxes, run_direct, sector_msg, serve
 from test_streaming import assert_same_detections
 
+from contract import DetectionsReply, decode_response, encode_sector
 from model.checkpoint import init_weights, load_checkpoint, resolve_checkpoint
 from model.config import RefineConfig, tiny
 from model.data.sources import scan_source
@@ -34,6 +38,7 @@ from model.layers.refine import (
 )
 from model.sectors import split_turn
 from model.stream import StreamingDetector
+from server.default_model import load_default_model
 
 CFG = RefineConfig(points=16)
 
@@ -157,3 +162,26 @@ def test_the_shipped_refiner_brings_the_boxes_closer_to_the_truth(shipped):
             into.extend(iou.max(1)[iou.max(1) >= 0.3])
     b, a = np.median(before), np.median(after)
     assert a > b + 0.05, (b, a)
+
+
+def test_a_server_refines_unless_told_not_to():
+    """`phim serve` runs the default model's refiner; `--no-refiner` serves the detector's boxes alone. Each
+    server's replies equal its model's own streaming steps, and the two differ."""
+    sectors = [s.numpy() for s in scan_sectors(scan_source("sim", 7, shuffle=False)(0), 4, 4)]
+    replies: dict[bool, list[DetectionsReply]] = {}
+    for refiner in (True, False):
+        model = load_default_model("cpu")[0]
+        if not refiner:
+            model.drop_refiner()
+        ref = run_direct(StreamingDetector(model), sectors)
+        assert len(ref[-1]) > 0
+        with serve(None, refiner=refiner) as server:
+            assert httpx.get(f"{server.url}/v1/model").json()["refiner"] is refiner
+            url, headers = f"{server.url}/v1/streams/car/sectors", {"Content-Type": "application/msgpack"}
+            bodies = [encode_sector(sector_msg("car", i, s)) for i, s in enumerate(sectors)]
+            posted = [httpx.post(url, content=b, headers=headers, timeout=60) for b in bodies]
+            replies[refiner] = [decode_response(r.content) for r in posted]
+        for r, d in zip(replies[refiner], ref, strict=True):
+            assert isinstance(r, DetectionsReply), r
+            assert_same_boxes(r.boxes, r.scores, r.labels, d)
+    assert not np.array_equal(replies[True][-1].scores, replies[False][-1].scores)

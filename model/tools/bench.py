@@ -30,6 +30,7 @@ class ModelBench:
     engine: str  # model.config.Engine
     precision: str  # model.config.Precision
     scan: str  # the selective-scan implementation that ran (model/ops/scan.py)
+    refiner: bool  # the box refiner ran after each step
     threads: int
     batch: int  # streams per forward
     sector_points: int  # fixed/graph: the points every sector was padded to (0: its own bucket)
@@ -133,6 +134,7 @@ def bench_model(
         engine=engine.value,
         precision=precision.value,
         scan=resolve_scan(cfg.backbone.mamba.scan, dev).value,
+        refiner=model.refiner is not None,
         threads=torch.get_num_threads(),
         batch=batch,
         sector_points=sector_points,
@@ -155,6 +157,7 @@ class EngineComparison:
     device: str
     precision: str
     scan: str  # the eager engine's selective scan (the fixed-shape engines have their own)
+    refiner: bool  # the box refiner ran after each step
     threads: int
     engines: list[str]  # the first is the one the others are divided by
     points_per_sector: list[int]
@@ -201,6 +204,7 @@ def compare_engines(
         device=_device_name(model.device),
         precision=precision.value,
         scan=resolve_scan(model.cfg.backbone.mamba.scan, model.device).value,
+        refiner=model.refiner is not None,
         threads=torch.get_num_threads(),
         engines=[e.value for e in engines],
         points_per_sector=[int(s.shape[0]) for s in sectors],

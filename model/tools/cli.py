@@ -18,6 +18,7 @@ from model.tools.options import (
     engine_option,
     points_option,
     precision_option,
+    refiner_option,
     threads_option,
 )
 from phim.options import EnumValue, json_option
@@ -43,9 +44,11 @@ def load_turn(points: Path | None, fallback_kitti: bool) -> tuple[torch.Tensor, 
     return torch.from_numpy(synthetic_turn(seed=0)), "synthetic_turn(seed=0)"
 
 
-def load_model(config: str | None, checkpoint: str | None, device: str, threads: int = 0) -> PHiM:
+def load_model(
+    config: str | None, checkpoint: str | None, device: str, threads: int = 0, refiner: bool = True
+) -> PHiM:
     """A fresh model of `config` (no checkpoint) or the weights of `checkpoint` (of `config`, or of any
-    config with None), on `device`."""
+    config with None), on `device`; without its box refiner unless `refiner`."""
     import torch
 
     from model.checkpoint import checkpoint_path, load_checkpoint
@@ -56,9 +59,13 @@ def load_model(config: str | None, checkpoint: str | None, device: str, threads:
         torch.set_num_threads(threads)
     dev, cfg = pick_device(device), get_config(config) if config else None
     if checkpoint:
-        return load_checkpoint(checkpoint_path(checkpoint), cfg, dev)
-    assert cfg is not None, "a fresh model needs a config"
-    return PHiM(cfg).to(dev)
+        model = load_checkpoint(checkpoint_path(checkpoint), cfg, dev)
+    else:
+        assert cfg is not None, "a fresh model needs a config"
+        model = PHiM(cfg).to(dev)
+    if not refiner:
+        model.drop_refiner()
+    return model
 
 
 @click.command()
@@ -89,6 +96,7 @@ def info(config: str, points: Path | None, as_json: bool) -> None:
 @click.option("--scan", type=EnumValue(ScanImpl), help="Selective scan [default: the config's].")
 @engine_option
 @precision_option
+@refiner_option
 @click.option(
     "--sector-points",
     type=click.IntRange(0),
@@ -116,6 +124,7 @@ def bench_model_cmd(
     scan: ScanImpl | None,
     engine: Engine,
     precision: Precision,
+    refiner: bool,
     sector_points: int,
     bev_crop: bool,
     as_json: bool,
@@ -124,7 +133,7 @@ def bench_model_cmd(
     from model.tools.bench import bench_model
 
     logging.basicConfig(level=logging.WARNING)
-    model = load_model(config, checkpoint, device, threads)
+    model = load_model(config, checkpoint, device, threads, refiner)
     if scan is not None:
         model.set_scan(scan)
     turn, source = load_turn(points, fallback_kitti=True)
@@ -150,6 +159,7 @@ def bench_model_cmd(
         "engine",
         "precision",
         "scan",
+        "refiner",
         "threads",
         "batch",
         "points_per_sector",
@@ -177,6 +187,7 @@ def bench_model_cmd(
 @click.option("--rounds", type=click.IntRange(1), default=10, show_default=True, help="Timed turns of each.")
 @click.option("--scan", type=EnumValue(ScanImpl), help="The eager engine's scan [default: the config's].")
 @precision_option
+@refiner_option
 @json_option
 def bench_engines_cmd(
     config: str,
@@ -188,6 +199,7 @@ def bench_engines_cmd(
     rounds: int,
     scan: ScanImpl | None,
     precision: Precision,
+    refiner: bool,
     as_json: bool,
 ) -> None:
     """Engines against each other in one process, alternating turns: p50s and their ratios."""
@@ -200,7 +212,7 @@ def bench_engines_cmd(
             param_hint="--engines",
         )
     logging.basicConfig(level=logging.WARNING)
-    model = load_model(config, checkpoint, device, threads)
+    model = load_model(config, checkpoint, device, threads, refiner)
     if scan is not None:  # the fixed-shape engines have their own segmented scan
         model.set_scan(scan)
     turn, source = load_turn(points, fallback_kitti=True)
@@ -211,7 +223,7 @@ def bench_engines_cmd(
         return
     click.echo(
         f"input: {source}; {result['config']} on {result['device']}, {result['threads']} threads, "
-        f"eager scan {result['scan']}"
+        f"eager scan {result['scan']}, refiner {'on' if result['refiner'] else 'off'}"
     )
     base = result["engines"][0]
     click.echo(f"\n| engine | p50 ms | p90 ms | p50 / {base} | per round (min-max) |\n|---|---|---|---|---|")

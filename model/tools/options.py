@@ -123,3 +123,12 @@ precision_option: Decorator = click.option(
     show_envvar=True,
     help="fp32, or bf16 (autocast: matmuls and convs in bfloat16; meant for CUDA, slow on CPUs without AMX).",
 )
+
+
+refiner_option: Decorator = click.option(
+    "--refiner/--no-refiner",
+    default=True,
+    show_default=True,
+    help="Run the checkpoint's box refiner after each step, where it has one; --no-refiner: the detector "
+    "alone.",
+)
