@@ -12,6 +12,7 @@ from click.testing import CliRunner
 
 from model.checkpoint import resolve_checkpoint, save_checkpoint
 from model.config import tiny
+from model.data.sources import scan_source
 from model.detector import PHiM
 from phim.cli import main as app
 
@@ -67,8 +68,11 @@ def test_bench_engines_names_a_bad_engine_list(engines: str) -> None:
     assert result.exit_code == 2 and "--engines" in result.output and "two or more different" in result.output
 
 
-def test_bench_refiner_times_the_shipped_refiner_on_a_whole_turns_boxes() -> None:
-    result = CliRunner().invoke(app, ["bench", "refiner", "--repeats", "2", "--json"])
+def test_bench_refiner_times_the_shipped_refiner_on_a_whole_turns_boxes(tmp_path: Path) -> None:
+    scan = scan_source("sim", 7, shuffle=False)(0).points  # a scan with boxes, samples or not
+    scan.astype(np.float32).tofile(tmp_path / "scan.bin")
+    args = ["bench", "refiner", "--points", str(tmp_path / "scan.bin"), "--repeats", "2", "--json"]
+    result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     bench = json.loads(result.output.strip().splitlines()[-1])
     assert bench["config"] == "tiny" and bench["repeats"] == 2 and bench["boxes"] > 0 and bench["points"] > 0
