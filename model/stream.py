@@ -21,7 +21,7 @@ from model.geometry.boxes import Detections
 from model.layers.head import decode
 from model.layers.mamba import MambaState
 from model.layers.phim_block import StreamLayout
-from model.layers.refine import refine_stream
+from model.layers.refine import refine_streams
 from model.layers.voxelize import PointsError, validate_points
 from model.precision import autocast, check_precision
 
@@ -100,7 +100,7 @@ class StreamingDetector:
         for p in points:
             self.validate(p)
         dev = self.device
-        points = [p.to(dev, non_blocking=True) for p in points]
+        host, points = points, [p.to(dev, non_blocking=True) for p in points]
         layout = StreamLayout.one_per_item(len(points), dev)
         reset = [self.cfg.resets_history(s.sectors_seen) for s in states]
         zero = self.model.init_states(1) if any(reset) else []  # a turn boundary: the global Mamba restarts
@@ -110,15 +110,16 @@ class StreamingDetector:
             enc = self.model.encode(points, layout, per_block)
             scenes = [[*s.buffer, new] for s, new in zip(states, enc.sectors, strict=True)]
             maps = self.model.predict(scenes)  # float32 maps
-        detections = decode(maps, self.cfg.head, self.cfg.bev)
         keep = self.cfg.buffer_sectors
+        detections = decode(maps, self.cfg.head, self.cfg.bev)
+        buffered = [s.points for s in states]  # the refiner reads the points where the caller holds them
+        detections, kept = refine_streams(self.model.refiner, detections, buffered, host, keep)
         results, new_states = [], []
-        for i, (s, scene) in enumerate(zip(states, scenes, strict=True)):
+        for i, (s, scene, det) in enumerate(zip(states, scenes, detections, strict=True)):
             idx = torch.tensor([i], device=dev)
             mamba = tuple(b.index(idx) for b in enc.states)
             buffer = tuple(scene[-keep:]) if keep else ()
-            det, kept = refine_stream(self.model.refiner, detections[i], s.points, points[i], keep)
-            new_states.append(StreamState(mamba, buffer, s.sectors_seen + 1, kept))
+            new_states.append(StreamState(mamba, buffer, s.sectors_seen + 1, kept[i]))
             results.append(
                 SectorResult(
                     detections=det,

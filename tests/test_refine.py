@@ -33,7 +33,8 @@ from model.layers.refine import (
     box_points_reference,
     box_points_torch,
     refine,
-    refine_stream,
+    refine_many,
+    refine_streams,
     residual_target,
 )
 from model.sectors import split_turn
@@ -98,10 +99,44 @@ def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_
     det = Detections.empty()
     buffered: tuple[torch.Tensor, ...] = ()
     for s in sectors:
-        out, buffered = refine_stream(refiner, det, buffered, s, keep=3)
-        assert len(out) == 0
+        out, (buffered,) = refine_streams(refiner, [det], [buffered], [s], keep=3)
+        assert len(out) == 1 and len(out[0]) == 0
     assert [len(p) for p in buffered] == [30, 40, 50] and buffered[0].shape[1] == 3
-    assert refine_stream(None, det, buffered, sectors[0], keep=3) == (det, ())
+    assert refine_streams(None, [det], [buffered], [sectors[0]], keep=3) == ([det], [()])
+
+
+def _refine_plain(refiner, det: Detections, points: torch.Tensor) -> Detections:
+    """The refiner on one prediction, its boxes looked up every point against every box: the twin of
+    `refine_many`'s per-stream lookups and batched forward."""
+    local, counts = box_points_reference(points, det.boxes, refiner.cfg)
+    out = refiner(local, counts, det.boxes, det.scores, det.labels)
+    a = refiner.cfg.iou_weight
+    scores = det.scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
+    order = torch.argsort(scores, descending=True, stable=True)
+    return Detections(apply_residual(det.boxes, out)[order], scores[order], det.labels[order])
+
+
+@torch.no_grad()
+def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone():
+    """`refine_many` (the engines' path: lookups per stream, one forward over the batch's boxes, in chunks
+    on the CPU) against the plain twin per stream; streams of 40, 0 and 300 boxes (two chunks)."""
+    refiner = PHiM(dataclasses.replace(tiny(), refine=RefineConfig(points=16))).refiner.eval()
+    g = torch.Generator().manual_seed(9)
+    dets, points = [], []
+    for seed, b in ((4, 40), (5, 0), (6, 300)):
+        p, boxes = random_scene(seed, b=max(b, 2))
+        boxes = boxes[:b]
+        scores, labels = torch.rand(b, generator=g), torch.randint(0, 3, (b,), generator=g)
+        dets.append(Detections(boxes, scores, labels))
+        points.append(p)
+    got = refine_many(refiner, dets, points)
+    assert [len(d) for d in got] == [40, 0, 300]
+    for d, p, out in zip(dets, points, got, strict=True):
+        want = _refine_plain(refiner, d, p)
+        torch.testing.assert_close(out.boxes, want.boxes, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(out.scores, want.scores, rtol=1e-5, atol=1e-6)
+        assert torch.equal(out.labels, want.labels)
+    assert float((got[2].boxes.sum(0) - dets[2].boxes.sum(0)).abs().max()) > 1e-2  # the boxes did move
 
 
 def test_train_refiner_writes_the_frozen_detector_with_a_refiner_and_train_starts_without_it(tmp_path: Path):

@@ -29,7 +29,7 @@ from model.graph.buckets import CapacityPlanner, batch_bucket, row_bucket
 from model.graph.slots import GraphStreamState, SlotState, StateSlots, StepStates, from_stream_state
 from model.graph.step import STATS, Capacity, GraphStep
 from model.layers.head import Candidates, select_detections
-from model.layers.refine import refine_stream
+from model.layers.refine import refine_streams
 from model.precision import autocast
 from model.stream import SectorResult, StreamingDetector, StreamState
 
@@ -360,12 +360,14 @@ class GraphStreamingDetector:
         NMS (and the box refiner), and the points each stream buffers for the refiner."""
         c = Candidates(cand[..., :7], cand[..., 7], cand[..., 8].long(), cand[..., 9])
         dets: list[Detections] = select_detections(c, self.cfg.head)
+        dets, buffers = refine_streams(
+            self.model.refiner, dets, [s.points for s in states], points, self.cfg.buffer_sectors
+        )
         kept, out_of_range = STATS.index("points_kept"), STATS.index("points_out_of_range")
-        results, buffers = [], []
-        for d, s, st, p in zip(dets, states, stats, points, strict=True):
-            d, buffered = refine_stream(self.model.refiner, d, s.points, p, self.cfg.buffer_sectors)
-            results.append(SectorResult(d, s.buffered_sectors + 1, int(st[kept]), int(st[out_of_range])))
-            buffers.append(buffered)
+        results = [
+            SectorResult(d, s.buffered_sectors + 1, int(st[kept]), int(st[out_of_range]))
+            for d, s, st in zip(dets, states, stats, strict=True)
+        ]
         return results, buffers
 
 

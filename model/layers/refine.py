@@ -155,30 +155,62 @@ def residual_target(boxes: Tensor, truth: Tensor) -> Tensor:
     return torch.cat((d, dims, dyaw[:, None]), 1)
 
 
+# boxes per PointNet forward on a CPU, where its (boxes x points, hidden) activations then stay in cache
+_CPU_CHUNK = 160
+
+
 @torch.no_grad()
 def refine(refiner: BoxRefiner, det: Detections, points: Tensor) -> Detections:
     """A prediction's detections and the raw points (N, >=3) of the sectors it covers -> the refined
-    detections, re-sorted by their refined score (computed on the refiner's device, returned on det's)."""
-    if len(det) == 0:
-        return det
-    home, dev = det.boxes.device, next(refiner.parameters()).device
-    det = det.to(dev)
-    local, counts = box_points(points.to(dev), det.boxes, refiner.cfg)
-    out = refiner(local, counts, det.boxes, det.scores, det.labels)
-    boxes = apply_residual(det.boxes, out)
-    a = refiner.cfg.iou_weight
-    scores = det.scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
+    detections, re-sorted by their refined score (on det's device)."""
+    return refine_many(refiner, [det], [points])[0]
+
+
+@torch.no_grad()
+def refine_many(refiner: BoxRefiner, dets: list[Detections], points: list[Tensor]) -> list[Detections]:
+    """Several predictions (a batch's streams), each with the raw points (N_i, >=3) of the sectors it
+    covers -> each refined as `refine` would. The points are looked up where they lie (the host, in a
+    server: no copy of them, no wait on a device), then one PointNet forward runs over every box of the
+    batch on the refiner's device (on a CPU in chunks of `_CPU_CHUNK` boxes: 1,040 boxes took 1.5-1.75x as
+    long in one forward as in chunks of 160)."""
+    dev, cfg = next(refiner.parameters()).device, refiner.cfg
+    sizes = [len(d) for d in dets]
+    if sum(sizes) == 0:
+        return list(dets)
+    looked = [box_points(p, d.boxes.to(p.device), cfg) for d, p in zip(dets, points, strict=True) if len(d)]
+    local = torch.cat([lc[0] for lc in looked]).to(dev)  # (T, P, 3) T: the batch's boxes
+    counts = torch.cat([lc[1] for lc in looked]).to(dev)  # (T,)
+    boxes = torch.cat([d.boxes for d in dets]).to(dev)  # (T, 7)
+    scores = torch.cat([d.scores for d in dets]).to(dev)  # (T,)
+    labels = torch.cat([d.labels for d in dets]).to(dev)  # (T,)
+    chunk = _CPU_CHUNK if dev.type == "cpu" else boxes.shape[0]
+    parts = zip(*(x.split(chunk) for x in (local, counts, boxes, scores, labels)), strict=True)
+    out = torch.cat([refiner(*part) for part in parts])
+    refined = apply_residual(boxes, out)  # out (T, 8)
+    a = cfg.iou_weight
+    refined_scores = scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
+    split = zip(refined.split(sizes), refined_scores.split(sizes), labels.split(sizes), dets, strict=True)
+    return [_sorted(b, s, lab).to(d.boxes.device) for b, s, lab, d in split]
+
+
+def _sorted(boxes: Tensor, scores: Tensor, labels: Tensor) -> Detections:
     order = torch.argsort(scores, descending=True, stable=True)
-    return Detections(boxes[order], scores[order], det.labels[order]).to(home)
+    return Detections(boxes[order], scores[order], labels[order])
 
 
-def refine_stream(
-    refiner: BoxRefiner | None, det: Detections, buffered: tuple[Tensor, ...], new: Tensor, keep: int
-) -> tuple[Detections, tuple[Tensor, ...]]:
-    """A streaming step's detections for one stream, its buffered sectors' points (x, y, z) and its new
-    sector's points -> the detections refined on those points, and the points to buffer for its next step
-    (the last `keep` sectors'; nothing without a refiner, whose detections pass unchanged)."""
+def refine_streams(
+    refiner: BoxRefiner | None,
+    dets: list[Detections],
+    buffered: list[tuple[Tensor, ...]],
+    new: list[Tensor],
+    keep: int,
+) -> tuple[list[Detections], list[tuple[Tensor, ...]]]:
+    """A streaming step's detections per stream, each stream's buffered sectors' points (x, y, z) and its new
+    sector's points -> the detections refined on those points (`refine_many`: one PointNet forward for the
+    batch), and the points each stream buffers for its next step (the last `keep` sectors'; nothing without
+    a refiner, whose detections pass unchanged)."""
     if refiner is None:
-        return det, ()
-    sectors = (*buffered, new[:, :3])
-    return refine(refiner, det, torch.cat(sectors)), sectors[-keep:] if keep else ()
+        return list(dets), [() for _ in dets]
+    sectors = [(*b, n[:, :3]) for b, n in zip(buffered, new, strict=True)]
+    refined = refine_many(refiner, dets, [torch.cat(s) for s in sectors])
+    return refined, [s[-keep:] if keep else () for s in sectors]
