@@ -26,6 +26,7 @@ from model.detector import PHiM
 from model.eval.metrics import iou_matrix
 from model.eval.runner import scan_sectors
 from model.geometry.boxes import Detections
+from model.layers import refine as refine_module
 from model.layers.phim_block import StreamLayout
 from model.layers.refine import (
     apply_residual,
@@ -116,10 +117,19 @@ def _refine_plain(refiner, det: Detections, points: torch.Tensor) -> Detections:
     return Detections(apply_residual(det.boxes, out)[order], scores[order], det.labels[order])
 
 
+@pytest.fixture(params=[1, 2])
+def torch_threads(request):
+    before = torch.get_num_threads()
+    torch.set_num_threads(request.param)
+    yield request.param
+    torch.set_num_threads(before)
+
+
 @torch.no_grad()
-def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone():
-    """`refine_many` (the engines' path: lookups per stream, one forward over the batch's boxes, in chunks
-    on the CPU) against the plain twin per stream; streams of 40, 0 and 300 boxes (two chunks)."""
+def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone(torch_threads: int):
+    """`refine_many` (the engines' path: lookups per stream, on torch's threads at once where it has
+    several, one forward over the batch's boxes, in chunks on the CPU) against the plain twin per stream;
+    streams of 40, 0 and 300 boxes (two chunks)."""
     refiner = PHiM(dataclasses.replace(tiny(), refine=RefineConfig(points=16))).refiner.eval()
     g = torch.Generator().manual_seed(9)
     dets, points = [], []
@@ -137,6 +147,7 @@ def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone():
         torch.testing.assert_close(out.scores, want.scores, rtol=1e-5, atol=1e-6)
         assert torch.equal(out.labels, want.labels)
     assert float((got[2].boxes.sum(0) - dets[2].boxes.sum(0)).abs().max()) > 1e-2  # the boxes did move
+    assert torch_threads == 1 or refine_module._pool.cache_info().currsize > 0  # the lookups ran at once
 
 
 def test_train_refiner_writes_the_frozen_detector_with_a_refiner_and_train_starts_without_it(tmp_path: Path):

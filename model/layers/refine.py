@@ -16,7 +16,9 @@ every point against every box. tests/test_refine.py holds them equal.
 
 from __future__ import annotations
 
+import functools
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import torch
 from torch import Tensor, nn
@@ -177,7 +179,7 @@ def refine_many(refiner: BoxRefiner, dets: list[Detections], points: list[Tensor
     sizes = [len(d) for d in dets]
     if sum(sizes) == 0:
         return list(dets)
-    looked = [box_points(p, d.boxes.to(p.device), cfg) for d, p in zip(dets, points, strict=True) if len(d)]
+    looked = _lookups([(p, d.boxes.to(p.device)) for d, p in zip(dets, points, strict=True) if len(d)], cfg)
     local = torch.cat([lc[0] for lc in looked]).to(dev)  # (T, P, 3) T: the batch's boxes
     counts = torch.cat([lc[1] for lc in looked]).to(dev)  # (T,)
     boxes = torch.cat([d.boxes for d in dets]).to(dev)  # (T, 7)
@@ -191,6 +193,20 @@ def refine_many(refiner: BoxRefiner, dets: list[Detections], points: list[Tensor
     refined_scores = scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
     split = zip(refined.split(sizes), refined_scores.split(sizes), labels.split(sizes), dets, strict=True)
     return [_sorted(b, s, lab).to(d.boxes.device) for b, s, lab, d in split]
+
+
+def _lookups(jobs: list[tuple[Tensor, Tensor]], cfg: RefineConfig) -> list[tuple[Tensor, Tensor]]:
+    """`box_points` of each (points, boxes) pair; on the CPU on torch's threads at once (the numba kernel
+    releases the GIL: 8 KITTI turns' lookups took 0.53-0.68x as long on 2 threads as one after another)."""
+    threads = torch.get_num_threads()
+    if len(jobs) > 1 and threads > 1 and all(p.device.type == "cpu" for p, _ in jobs):
+        return list(_pool(threads).map(lambda job: box_points(*job, cfg), jobs))
+    return [box_points(p, b, cfg) for p, b in jobs]
+
+
+@functools.cache
+def _pool(workers: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(workers, thread_name_prefix="refine-lookup")
 
 
 def _sorted(boxes: Tensor, scores: Tensor, labels: Tensor) -> Detections:
