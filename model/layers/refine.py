@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from concurrent.futures import ThreadPoolExecutor
 
 import torch
@@ -207,6 +208,9 @@ def _lookups(jobs: list[tuple[Tensor, Tensor]], cfg: RefineConfig) -> list[tuple
 @functools.cache
 def _pool(workers: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(workers, thread_name_prefix="refine-lookup")
+
+
+os.register_at_fork(after_in_child=_pool.cache_clear)  # a forked child has none of the pool's threads
 
 
 def _sorted(boxes: Tensor, scores: Tensor, labels: Tensor) -> Detections:
