@@ -7,7 +7,8 @@
 # Usage: bash scripts/gpu_session.sh OUTDIR STAGE...   (with 15 minutes of device time: `bench profile`, then
 # `tests server_paper`; the profile after the bench finds the bench's kernels in inductor's cache)
 #   tests    tests/test_cuda.py (parity: kernels, eager, fixed and compiled graph step, bf16)    ~3 min
-#   profile  paper graph step, batch 1, bf16 then fp32: wall time against kernel time, top kernels ~3 min
+#   profile  paper graph step, batch 1, bf16 then fp32: wall time against kernel time, top kernels; the
+#            shipped refiner for a batch of 32 streams (host lookups, one PointNet forward)          ~3 min
 #   bench    phim bench model: paper eager, and graph (crops) in bf16 at batch 1 and 8             ~8 min
 #   bench2   tiny graph at batch 1 and 8; paper graph bf16 batch 8 on the whole map (--whole-map)  ~7 min
 #   server   tiny (shipped) served by the graph engine, bf16, max batch 32: zenoh closed-loop sweep 1..64
@@ -95,6 +96,8 @@ for stage in "$@"; do
                 --json "$out/profile_paper_$precision.json"
             cat "$out/profile_paper_$precision.out"
         done
+        step refiner_b32 90 "$py" -m phim bench refiner --device cuda --streams 32 --repeats 20
+        cat "$out/refiner_b32.out"
         ;;
     bench)
         bench paper 1 eager fp32 60

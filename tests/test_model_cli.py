@@ -68,14 +68,16 @@ def test_bench_engines_names_a_bad_engine_list(engines: str) -> None:
     assert result.exit_code == 2 and "--engines" in result.output and "two or more different" in result.output
 
 
-def test_bench_refiner_times_the_shipped_refiner_on_a_whole_turns_boxes(tmp_path: Path) -> None:
+@pytest.mark.parametrize("streams", [1, 3])
+def test_bench_refiner_times_the_shipped_refiner_on_a_whole_turns_boxes(tmp_path: Path, streams: int) -> None:
     scan = scan_source("sim", 7, shuffle=False)(0).points  # a scan with boxes, samples or not
     scan.astype(np.float32).tofile(tmp_path / "scan.bin")
     args = ["bench", "refiner", "--points", str(tmp_path / "scan.bin"), "--repeats", "2", "--json"]
-    result = CliRunner().invoke(app, args)
+    result = CliRunner().invoke(app, [*args, "--streams", str(streams)])
     assert result.exit_code == 0, result.output
     bench = json.loads(result.output.strip().splitlines()[-1])
     assert bench["config"] == "tiny" and bench["repeats"] == 2 and bench["boxes"] > 0 and bench["points"] > 0
+    assert bench["streams"] == streams and bench["points"] == len(scan)
     assert bench["points_per_box"] == resolve_checkpoint("default")[0].cfg.refine.points
     assert min(bench["lookup_p50_ms"], bench["pointnet_p50_ms"], bench["refine_p50_ms"]) > 0
 

@@ -17,7 +17,7 @@ from model.config import Engine, Precision
 from model.detector import PHiM
 from model.graph.engine import Detector, GraphStreamingDetector, SectorRejected, streaming_detector
 from model.layers.phim_block import StreamLayout
-from model.layers.refine import box_points, refine
+from model.layers.refine import box_points_many, refine_many, refiner_forward
 from model.ops.scan import resolve_scan
 from model.precision import autocast
 from model.sectors import split_turn
@@ -221,54 +221,66 @@ class RefinerBench:
     config: str
     device: str
     threads: int
-    points: int  # the turn's points, which every step's refiner searches
-    boxes: int  # the detector's boxes on the whole turn, which it refines
+    streams: int  # a batch of this many streams, each with the same turn
+    points: int  # the turn's points, which every step's refiner searches (each stream's, on the host)
+    boxes: int  # the detector's boxes on the whole turn, which it refines (each stream's)
     points_per_box: int  # RefineConfig.points
     repeats: int
-    lookup_p50_ms: float  # box_points
-    pointnet_p50_ms: float  # the BoxRefiner forward
-    refine_p50_ms: float  # refine(): both, the residuals and the re-sort
+    lookup_p50_ms: float  # box_points_many: the batch's lookups
+    pointnet_p50_ms: float  # the BoxRefiner forward over the batch's boxes
+    refine_p50_ms: float  # refine_many(): both, the residuals and the re-sort
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-def bench_refiner(model: PHiM, turn: Tensor, repeats: int = 30) -> RefinerBench:
+def bench_refiner(model: PHiM, turn: Tensor, repeats: int = 30, streams: int = 1) -> RefinerBench:
     """The box refiner on the detector's boxes for the whole `turn` (what it does after every step with its
-    buffer loaded), `repeats` times each: its point lookup, its PointNet and all of `refine`."""
+    buffer loaded) for a batch of `streams` streams with that turn, as a server holds them (the points on
+    the host), `repeats` times each: the point lookups, the PointNet and all of `refine_many`."""
     if model.refiner is None:
         raise ValueError(f"the model ({model.cfg.name}) has no box refiner")
     dev, cfg = model.device, model.refiner.cfg
-    sectors = [s.to(dev) for s in split_turn(turn, model.cfg.sectors_per_turn)]
-    points = torch.cat(sectors)[:, :3]
+    sectors = split_turn(turn, model.cfg.sectors_per_turn)
+    points = [torch.cat(sectors)[:, :3].contiguous()] * streams  # (N, 3) each, on the host
     with torch.inference_mode():
-        enc = model.encode(sectors, StreamLayout.single_stream(len(sectors), dev), model.init_states(1))
-        det = model.detect([enc.sectors])[0]
-        local, counts = box_points(points, det.boxes, cfg)
+        on_dev = [s.to(dev) for s in sectors]
+        enc = model.encode(on_dev, StreamLayout.single_stream(len(sectors), dev), model.init_states(1))
+        dets = [model.detect([enc.sectors])[0].to("cpu")] * streams
+        boxes = [d.boxes for d in dets]
+        looked = box_points_many(points, boxes, cfg)
+        local, counts = (torch.cat([lc[i] for lc in looked]).to(dev) for i in (0, 1))
+        inputs = [torch.cat([getattr(d, f) for d in dets]).to(dev) for f in ("boxes", "scores", "labels")]
         runs = {
-            "lookup": lambda: box_points(points, det.boxes, cfg),
-            "pointnet": lambda: model.refiner(local, counts, det.boxes, det.scores, det.labels),
-            "refine": lambda: refine(model.refiner, det, points),
+            "lookup": lambda: box_points_many(points, boxes, cfg),
+            "pointnet": lambda: refiner_forward(model.refiner, local, counts, *inputs),
+            "refine": lambda: refine_many(model.refiner, dets, points),
         }
-        times: dict[str, list[float]] = {k: [] for k in runs}
-        for i in range(repeats + 2):  # interleaved; the first two are warm-up
-            for k, run in runs.items():
-                _sync(dev)
-                t0 = time.perf_counter()
-                run()
-                _sync(dev)
-                if i >= 2:
-                    times[k].append((time.perf_counter() - t0) * 1e3)
-    p50 = {k: round(statistics.median(v), 2) for k, v in times.items()}
+        p50 = _interleaved(runs, repeats, dev)
     return RefinerBench(
         config=model.cfg.name,
         device=_device_name(dev),
         threads=torch.get_num_threads(),
-        points=int(points.shape[0]),
-        boxes=len(det),
+        streams=streams,
+        points=int(points[0].shape[0]),
+        boxes=len(dets[0]),
         points_per_box=cfg.points,
         repeats=repeats,
         lookup_p50_ms=p50["lookup"],
         pointnet_p50_ms=p50["pointnet"],
         refine_p50_ms=p50["refine"],
     )
+
+
+def _interleaved(runs: dict, repeats: int, dev: torch.device) -> dict[str, float]:
+    """Each run `repeats` times, in turns (the first two rounds warm-up) -> p50 ms by name."""
+    times: dict[str, list[float]] = {k: [] for k in runs}
+    for i in range(repeats + 2):
+        for k, run in runs.items():
+            _sync(dev)
+            t0 = time.perf_counter()
+            run()
+            _sync(dev)
+            if i >= 2:
+                times[k].append((time.perf_counter() - t0) * 1e3)
+    return {k: round(statistics.median(v), 2) for k, v in times.items()}

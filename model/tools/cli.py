@@ -241,18 +241,22 @@ def bench_engines_cmd(
 @threads_option
 @checkpoint_option("default")
 @click.option("--repeats", type=click.IntRange(1), default=30, show_default=True, help="Timed runs of each.")
+@click.option(
+    "--streams", type=click.IntRange(1), default=1, show_default=True, help="A batch of this many streams."
+)
 @json_option
 def bench_refiner_cmd(
-    points: Path | None, device: str, threads: int, checkpoint: str, repeats: int, as_json: bool
+    points: Path | None, device: str, threads: int, checkpoint: str, repeats: int, streams: int, as_json: bool
 ) -> None:
-    """The box refiner on a whole turn's boxes, as after every step: its lookup, its PointNet, all of it."""
+    """The box refiner on a whole turn's boxes, as after every step (for a batch of streams with that turn,
+    its points on the host as a server holds them): the lookups, the PointNet, all of it."""
     from model.tools.bench import bench_refiner
 
     logging.basicConfig(level=logging.WARNING)
     model = load_model(None, checkpoint, device, threads).eval()
     turn, source = load_turn(points, fallback_kitti=True)
     try:
-        result = bench_refiner(model, turn, repeats).to_dict() | {"input": source}
+        result = bench_refiner(model, turn, repeats, streams).to_dict() | {"input": source}
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--checkpoint") from e
     if as_json:
@@ -260,7 +264,8 @@ def bench_refiner_cmd(
         return
     click.echo(
         f"input: {source} ({result['points']} points, {result['boxes']} boxes, {result['points_per_box']} "
-        f"points read per box); {result['config']} on {result['device']}, {result['threads']} threads"
+        f"points read per box) x {streams} streams; {result['config']} on {result['device']}, "
+        f"{result['threads']} threads"
     )
     click.echo("\n| part | p50 ms |\n|---|---|")
     for part in ("lookup", "pointnet", "refine"):
