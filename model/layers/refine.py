@@ -180,8 +180,9 @@ def refine_many(refiner: BoxRefiner, dets: list[Detections], points: list[Tensor
     sizes = [len(d) for d in dets]
     if sum(sizes) == 0:
         return list(dets)
-    with_boxes = [(p, d.boxes.to(p.device)) for d, p in zip(dets, points, strict=True) if len(d)]
-    looked = box_points_many([p for p, _ in with_boxes], [b for _, b in with_boxes], cfg)
+    some = [i for i, d in enumerate(dets) if len(d)]  # the streams with boxes
+    boxes_at_points = [dets[i].boxes.to(points[i].device) for i in some]
+    looked = box_points_many([points[i] for i in some], boxes_at_points, cfg)
     local = torch.cat([lc[0] for lc in looked]).to(dev)  # (T, P, 3) T: the batch's boxes
     counts = torch.cat([lc[1] for lc in looked]).to(dev)  # (T,)
     boxes = torch.cat([d.boxes for d in dets]).to(dev)  # (T, 7)
