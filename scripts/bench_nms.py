@@ -1,9 +1,11 @@
-"""NMS of real candidates on the host: the numba kernel (model/geometry/nms_cpu.py) against its torch twin.
+"""NMS of real candidates on the host, for one stream and a batch: the batch kernel, the numba NMS item by
+item, and its torch twin (model/geometry/nms.py, nms_cpu.py).
 
-Usage: PYTHONPATH=. python scripts/bench_nms.py [--rounds 2]
+Usage: PYTHONPATH=. python scripts/bench_nms.py [--rounds 2] [--streams 1,32]
 Streams KITTI 000000 (or a synthetic turn) through the fixed-shape step of `tiny` (shipped weights) and
-`paper` (untrained: 4,096 candidates a sector, the worst case), keeps each sector's candidates, then times
-`select_detections` on them with each implementation in turn, alternating, and prints a table.
+`paper` (untrained: 4,096 candidates a sector, the worst case), keeps each sector's candidates, stacks them
+into batches of each size (a server's batch: one sector per stream), then times `select_detections` on them
+with each implementation in turn, alternating, and prints a table.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import torch
 
 import model.geometry.nms as nms
 from model.config import HeadConfig
+from model.geometry.nms_cpu import class_nms_batch_cpu
 from model.graph import engine
 from model.graph.engine import GraphStreamingDetector
 from model.layers.head import Candidates, select_detections
@@ -43,31 +46,45 @@ def candidates(config: str, checkpoint: str | None, steps: int) -> tuple[list[Ca
     return seen, model.cfg.head
 
 
+def batch_of(cands: list[Candidates], streams: int) -> Candidates:
+    """`streams` streams' candidates in one batch, the recorded sectors' in turn."""
+    picks = [cands[k % len(cands)] for k in range(streams)]
+    fields = ("boxes", "scores", "labels", "heat")
+    return Candidates(*(torch.cat([getattr(c, f) for c in picks]) for f in fields))
+
+
+IMPLS = {  # name -> (the CPU batch call, the greedy NMS an item's `class_nms` uses)
+    "torch twin": (nms.class_nms_batch_plain, nms._grouped_nms_torch),
+    "numba item by item": (nms.class_nms_batch_plain, nms._grouped_nms),
+    "batch kernel": (class_nms_batch_cpu, nms._grouped_nms),
+}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--streams", default="1,32", help="batch sizes, comma-separated")
     a = ap.parse_args()
     torch.set_num_threads(2)
-    fast, twin = nms._grouped_nms, nms._grouped_nms_torch
     rows = []
     for config, checkpoint in (("tiny", "default"), ("paper", None)):
         cands, head = candidates(config, checkpoint, 8 if config == "tiny" else 4)
-        times: dict[str, list[float]] = {"numba": [], "torch twin": []}
-        for _ in range(a.rounds):
-            for name, impl in (("torch twin", twin), ("numba", fast)):
-                nms._grouped_nms = impl
-                for c in cands:
-                    t0 = time.perf_counter()
-                    kept = select_detections(c, head)
-                    times[name].append((time.perf_counter() - t0) * 1e3)
-        nms._grouped_nms = fast
         n = max(int(((c.heat > 0) & (c.heat >= head.score_threshold)).sum()) for c in cands)
-        twin_ms, fast_ms = statistics.median(times["torch twin"]), statistics.median(times["numba"])
-        rows.append((config, n, len(kept[0]), twin_ms, fast_ms))
-    print("| config | candidates (most) | kept (last) | torch twin p50 | numba p50 | ratio |")
+        for streams in (int(x) for x in a.streams.split(",")):
+            batch = batch_of(cands, streams)
+            times: dict[str, list[float]] = {name: [] for name in IMPLS}
+            for _ in range(a.rounds * max(1, 8 // streams)):
+                for name, (call, greedy) in IMPLS.items():
+                    nms.class_nms_batch_cpu, nms._grouped_nms = call, greedy
+                    t0 = time.perf_counter()
+                    select_detections(batch, head)
+                    times[name].append((time.perf_counter() - t0) * 1e3)
+            rows.append((config, streams, n, *(statistics.median(times[name]) for name in IMPLS)))
+    nms.class_nms_batch_cpu, nms._grouped_nms = IMPLS["batch kernel"]
+    print("| config | streams | candidates (most) | torch twin | numba item by item | batch kernel |")
     print("|---|---|---|---|---|---|")
-    for config, n, k, t, f in rows:
-        print(f"| {config} | {n} | {k} | {t:.2f} ms | {f:.2f} ms | {f / t:.2f} |")
+    for config, streams, n, twin, item, batch in rows:
+        print(f"| {config} | {streams} | {n} | {twin:.2f} ms | {item:.2f} ms | {batch:.2f} ms |")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 """The numba greedy NMS (model/geometry/nms_cpu.py, every CPU NMS) against its torch twin (GPU tensors),
-kept index for kept index; tests/test_boxes.py holds both against an independent shapely reference."""
+kept index for kept index; tests/test_boxes.py holds both against an independent shapely reference. The
+batch kernel (`class_nms_batch_cpu`, every CPU `select_detections`) against `class_nms` item by item."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ import pytest
 import torch
 from test_boxes import clustered, rand_boxes
 
-from model.geometry.nms import _grouped_nms_torch
-from model.geometry.nms_cpu import grouped_nms_cpu
+from model.geometry.nms import _grouped_nms_torch, class_nms_batch, class_nms_batch_plain
+from model.geometry.nms_cpu import class_nms_batch_cpu, grouped_nms_cpu
 
 
 def _both(b: np.ndarray, s: np.ndarray, groups: np.ndarray, thresholds: tuple, max_out: int, dtype):
@@ -57,3 +58,47 @@ def test_empty_and_nothing_to_keep():
     assert (
         grouped_nms_cpu(one, torch.ones(1), torch.ones(1), torch.zeros(1, dtype=torch.int64), 0).numel() == 0
     )
+
+
+IOU = (0.75, 0.6, 0.55)
+
+
+def _candidates(seed: int, dtype) -> tuple[torch.Tensor, ...]:
+    """A batch of 5 items of 300 clustered candidates as the head's (B, T, ...) views into one wider tensor
+    (as the graph engine passes them): ties, a NaN score, invalid rows, an item with none valid."""
+    g = np.random.default_rng(seed)
+    b = np.stack([clustered(g, 10, 30) for _ in range(5)])  # (5, 300, 7)
+    s = g.uniform(size=b.shape[:2])
+    s[:, ::9] = s[:, :1]  # ties: the earlier position first
+    s[1, 5] = np.nan
+    flat = torch.from_numpy(np.concatenate([b, s[..., None], np.zeros_like(s[..., None])], 2)).to(dtype)
+    labels = torch.from_numpy(g.integers(0, 3, b.shape[:2]))
+    valid = torch.from_numpy(g.uniform(size=b.shape[:2]) < 0.8)
+    valid[2] = False
+    return flat[..., :7], flat[..., 7], labels, valid
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", range(4))
+def test_the_batch_kernel_equals_class_nms_item_by_item(seed: int, dtype) -> None:
+    boxes, scores, labels, valid = _candidates(seed, dtype)
+    for pre, post in ((1000, 1000), (20, 1000), (1000, 7), (20, 0)):  # 20: below a class's ~80 valid
+        fast = class_nms_batch_cpu(boxes, scores, labels, valid, IOU, pre, post)
+        twin = class_nms_batch_plain(boxes, scores, labels, valid, IOU, pre, post)
+        assert fast[0].tolist() == twin[0].tolist() and fast[1].tolist() == twin[1].tolist()
+        assert fast[1][2] == 0 and (post == 0 or (fast[1][[0, 1, 3, 4]] > 0).all())
+    batch = (boxes, scores, labels, valid, IOU, 1000, 1000)
+    assert class_nms_batch(*batch)[0].tolist() == class_nms_batch_plain(*batch)[0].tolist()  # CPU: the kernel
+
+
+def test_the_batch_kernel_rejects_labels_past_the_thresholds_as_class_nms_does() -> None:
+    boxes, scores, labels, valid = _candidates(0, torch.float32)
+    labels[3, 4] = 3  # no IoU threshold for class 3
+    for impl in (class_nms_batch_cpu, class_nms_batch_plain):
+        with pytest.raises(ValueError, match="labels must lie in"):
+            impl(boxes, scores, labels, valid, IOU, 1000, 1000)
+    valid[3, 4] = False  # an invalid row's label is never read
+    batch = (boxes, scores, labels, valid, IOU, 1000, 1000)
+    assert class_nms_batch_cpu(*batch)[0].tolist() == class_nms_batch_plain(*batch)[0].tolist()
+    with pytest.raises(ValueError, match="IoU thresholds must be >= 0"):
+        class_nms_batch(boxes, scores, labels, valid, (0.5, -0.1, 0.5), 1000, 1000)

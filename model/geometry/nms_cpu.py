@@ -162,12 +162,93 @@ def grouped_nms_cpu(
     return order[torch.from_numpy(kept)]
 
 
+@numba.njit(cache=True, nogil=True)
+def _class_nms_batch(boxes, scores, labels, valid, iou, pre_k, post_k, kept, counts):  # pragma: no cover
+    """`nms.class_nms` of each batch item's valid candidates. boxes (B, T, 7), scores (B, T), labels (B, T)
+    int64, valid (B, T) bool, iou (C,) float64 -> fills kept (B, post_k) with each item's kept positions t
+    (by descending score) and counts (B,)."""
+    nb, nt = scores.shape
+    nc = iou.shape[0]
+    start = np.empty(nc + 1, np.int64)
+    sel = np.empty(nt, np.int64)  # the valid positions, class by class, ascending inside a class
+    for b in range(nb):
+        start[:] = 0
+        for t in range(nt):
+            if valid[b, t]:
+                c = labels[b, t]
+                if c < 0 or c >= nc:
+                    raise ValueError("labels must lie in [0, number of IoU thresholds)")
+                start[c + 1] += 1
+        for c in range(nc):
+            start[c + 1] += start[c]
+        fill = start[:-1].copy()
+        for t in range(nt):
+            if valid[b, t]:
+                sel[fill[labels[b, t]]] = t
+                fill[labels[b, t]] += 1
+        n = 0
+        for c in range(nc):  # each class's pre_k best (ties: the earlier position), kept in position order
+            part = sel[start[c] : start[c + 1]]
+            if part.shape[0] > pre_k:
+                part = np.sort(part[_descending(scores[b, part])[:pre_k]])
+            sel[n : n + part.shape[0]] = part
+            n += part.shape[0]
+        if n == 0 or post_k <= 0:
+            counts[b] = 0
+            continue
+        cand = sel[:n][_descending(scores[b, sel[:n]])]  # by score, then class, then position
+        picked = _greedy(boxes[b, cand].astype(np.float64), iou[labels[b, cand]], labels[b, cand], post_k)
+        counts[b] = picked.shape[0]
+        kept[b, : picked.shape[0]] = cand[picked]
+
+
+@numba.njit(cache=True, nogil=True)
+def _descending(x):  # pragma: no cover - compiled
+    """The stable order of x (n,) by descending value, NaN first (torch's `sort(descending=True,
+    stable=True)`)."""
+    key = np.empty(x.shape[0], np.float64)
+    for i in range(x.shape[0]):
+        key[i] = -np.inf if np.isnan(x[i]) else -x[i]
+    return np.argsort(key, kind="mergesort")
+
+
+def class_nms_batch_cpu(
+    boxes: Tensor,
+    scores: Tensor,
+    labels: Tensor,
+    valid: Tensor,
+    iou_thresholds: tuple[float, ...],
+    pre_top_k: int,
+    post_top_k: int,
+) -> tuple[Tensor, Tensor]:
+    """`nms.class_nms_batch`'s contract on CPU tensors, the batch in one kernel call: kept (K,) int64 flat
+    indices into B * T and counts (B,) int64."""
+    nb, nt = scores.shape
+    kept = np.zeros((nb, max(min(post_top_k, nt), 0)), np.int64)
+    counts = np.zeros(nb, np.int64)
+    _class_nms_batch(  # C-contiguous arrays: the layout the warm-up compiles for (`compile_kernels`)
+        np.ascontiguousarray(boxes.detach().numpy()),
+        np.ascontiguousarray(scores.detach().numpy()),
+        np.ascontiguousarray(labels.long().numpy()),
+        np.ascontiguousarray(valid.numpy()),
+        np.asarray(iou_thresholds, np.float64),
+        pre_top_k,
+        post_top_k,
+        kept,
+        counts,
+    )
+    rows = np.arange(kept.shape[1]) < counts[:, None]  # (B, post_k) the filled part of each row
+    flat = (kept + nt * np.arange(nb)[:, None])[rows]
+    return torch.from_numpy(flat), torch.from_numpy(counts)
+
+
 def compile_kernels() -> None:
     """Compile the kernels now (numba compiles at first call, or loads them from its cache beside this file):
-    a two-box call. A server calls this in its warm-up: NMS first runs on the first sector with a candidate
+    two-box calls. A server calls this in its warm-up: NMS first runs on the first sector with a candidate
     above the score threshold, and the compile (5-15 s on a loaded 2-core machine, once per install) would
     land on that request."""
     boxes = torch.tensor([[0.0, 0, 0, 4, 2, 1.5, 0], [0.5, 0, 0, 4, 2, 1.5, 0.1]])  # (2, 7)
-    grouped_nms_cpu(
-        boxes, torch.tensor([0.9, 0.8]), torch.tensor([0.5, 0.5]), torch.zeros(2, dtype=torch.int64), 2
-    )
+    scores, labels = torch.tensor([0.9, 0.8]), torch.zeros(2, dtype=torch.int64)
+    grouped_nms_cpu(boxes, scores, torch.tensor([0.5, 0.5]), labels, 2)
+    valid = torch.ones(1, 2, dtype=torch.bool)
+    class_nms_batch_cpu(boxes[None], scores[None], labels[None], valid, (0.5,), 2, 2)  # float32, as served
