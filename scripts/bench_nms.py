@@ -18,10 +18,9 @@ import torch
 
 import model.geometry.nms as nms
 from model.config import HeadConfig
-from model.geometry.nms_cpu import class_nms_batch_cpu
 from model.graph import engine
 from model.graph.engine import GraphStreamingDetector
-from model.layers.head import Candidates, select_detections
+from model.layers.head import Candidates, select_detections, select_detections_plain
 from model.sectors import split_turn
 from model.tools.cli import load_model, load_turn
 
@@ -53,10 +52,10 @@ def batch_of(cands: list[Candidates], streams: int) -> Candidates:
     return Candidates(*(torch.cat([getattr(c, f) for c in picks]) for f in fields))
 
 
-IMPLS = {  # name -> (the CPU batch call, the greedy NMS an item's `class_nms` uses)
-    "torch twin": (nms.class_nms_batch_plain, nms._grouped_nms_torch),
-    "numba item by item": (nms.class_nms_batch_plain, nms._grouped_nms),
-    "batch kernel": (class_nms_batch_cpu, nms._grouped_nms),
+IMPLS = {  # name -> (the NMS of a batch, the greedy pass an item's `class_nms` uses)
+    "torch twin": (select_detections_plain, nms._grouped_nms_torch),
+    "numba item by item": (select_detections_plain, nms._grouped_nms),
+    "batch kernel": (select_detections, nms._grouped_nms),
 }
 
 
@@ -74,13 +73,13 @@ def main() -> None:
             batch = batch_of(cands, streams)
             times: dict[str, list[float]] = {name: [] for name in IMPLS}
             for _ in range(a.rounds * max(1, 8 // streams)):
-                for name, (call, greedy) in IMPLS.items():
-                    nms.class_nms_batch_cpu, nms._grouped_nms = call, greedy
+                for name, (select, greedy) in IMPLS.items():
+                    nms._grouped_nms = greedy
                     t0 = time.perf_counter()
-                    select_detections(batch, head)
+                    select(batch, head)
                     times[name].append((time.perf_counter() - t0) * 1e3)
             rows.append((config, streams, n, *(statistics.median(times[name]) for name in IMPLS)))
-    nms.class_nms_batch_cpu, nms._grouped_nms = IMPLS["batch kernel"]
+    nms._grouped_nms = IMPLS["batch kernel"][1]
     print("| config | streams | candidates (most) | torch twin | numba item by item | batch kernel |")
     print("|---|---|---|---|---|---|")
     for config, streams, n, twin, item, batch in rows:

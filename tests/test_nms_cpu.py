@@ -1,6 +1,7 @@
 """The numba greedy NMS (model/geometry/nms_cpu.py, every CPU NMS) against its torch twin (GPU tensors),
 kept index for kept index; tests/test_boxes.py holds both against an independent shapely reference. The
-batch kernel (`class_nms_batch_cpu`, every CPU `select_detections`) against `class_nms` item by item."""
+batch kernel (`class_nms_batch_cpu`, every CPU `select_detections`) against `class_nms` item by item
+(`select_detections_plain`)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,11 @@ import pytest
 import torch
 from test_boxes import clustered, rand_boxes
 
-from model.geometry.nms import _grouped_nms_torch, class_nms_batch, class_nms_batch_plain
-from model.geometry.nms_cpu import class_nms_batch_cpu, grouped_nms_cpu
+from model.config import HeadConfig
+from model.geometry.boxes import Detections
+from model.geometry.nms import _grouped_nms_torch
+from model.geometry.nms_cpu import grouped_nms_cpu
+from model.layers.head import Candidates, select_detections, select_detections_plain
 
 
 def _both(b: np.ndarray, s: np.ndarray, groups: np.ndarray, thresholds: tuple, max_out: int, dtype):
@@ -60,45 +64,51 @@ def test_empty_and_nothing_to_keep():
     )
 
 
-IOU = (0.75, 0.6, 0.55)
-
-
-def _candidates(seed: int, dtype) -> tuple[torch.Tensor, ...]:
-    """A batch of 5 items of 300 clustered candidates as the head's (B, T, ...) views into one wider tensor
-    (as the graph engine passes them): ties, a NaN score, invalid rows, an item with none valid."""
+def _candidates(seed: int, dtype) -> Candidates:
+    """A batch of 5 items of 300 clustered candidates, as views into one wider tensor (as the graph engine
+    passes them): ties, a NaN score, heat 0 (top-k ran out) and below the threshold, an item with no peak."""
     g = np.random.default_rng(seed)
     b = np.stack([clustered(g, 10, 30) for _ in range(5)])  # (5, 300, 7)
     s = g.uniform(size=b.shape[:2])
     s[:, ::9] = s[:, :1]  # ties: the earlier position first
     s[1, 5] = np.nan
-    flat = torch.from_numpy(np.concatenate([b, s[..., None], np.zeros_like(s[..., None])], 2)).to(dtype)
+    heat = g.uniform(0.0, 1.0, b.shape[:2]) * (g.uniform(size=b.shape[:2]) < 0.9)  # ~10 % zero, ~10 % < 0.1
+    heat[2] = 0.0
+    flat = torch.from_numpy(np.concatenate([b, s[..., None], heat[..., None]], 2)).to(dtype)  # (5, 300, 9)
     labels = torch.from_numpy(g.integers(0, 3, b.shape[:2]))
-    valid = torch.from_numpy(g.uniform(size=b.shape[:2]) < 0.8)
-    valid[2] = False
-    return flat[..., :7], flat[..., 7], labels, valid
+    return Candidates(flat[..., :7], flat[..., 7], labels, flat[..., 8])
+
+
+def _same(a: list[Detections], b: list[Detections]) -> bool:
+    """The same detections, bit for bit (the NaN score too)."""
+    return all(
+        torch.equal(x.boxes, y.boxes)
+        and torch.allclose(x.scores, y.scores, rtol=0, atol=0, equal_nan=True)
+        and torch.equal(x.labels, y.labels)
+        for x, y in zip(a, b, strict=True)
+    )
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("seed", range(4))
 def test_the_batch_kernel_equals_class_nms_item_by_item(seed: int, dtype) -> None:
-    boxes, scores, labels, valid = _candidates(seed, dtype)
-    for pre, post in ((1000, 1000), (20, 1000), (1000, 7), (20, 0)):  # 20: below a class's ~80 valid
-        fast = class_nms_batch_cpu(boxes, scores, labels, valid, IOU, pre, post)
-        twin = class_nms_batch_plain(boxes, scores, labels, valid, IOU, pre, post)
-        assert fast[0].tolist() == twin[0].tolist() and fast[1].tolist() == twin[1].tolist()
-        assert fast[1][2] == 0 and (post == 0 or (fast[1][[0, 1, 3, 4]] > 0).all())
-    batch = (boxes, scores, labels, valid, IOU, 1000, 1000)
-    assert class_nms_batch(*batch)[0].tolist() == class_nms_batch_plain(*batch)[0].tolist()  # CPU: the kernel
+    cand = _candidates(seed, dtype)
+    for pre, post in ((1000, 1000), (20, 1000), (1000, 7), (20, 0)):  # 20: below a class's ~80 peaks
+        head = HeadConfig(pre_nms_top_k=pre, post_nms_top_k=post)
+        fast, twin = select_detections(cand, head), select_detections_plain(cand, head)
+        assert _same(fast, twin)
+        assert len(fast[2]) == 0 and (post == 0 or all(len(fast[i]) for i in (0, 1, 3, 4)))
 
 
 def test_the_batch_kernel_rejects_labels_past_the_thresholds_as_class_nms_does() -> None:
-    boxes, scores, labels, valid = _candidates(0, torch.float32)
-    labels[3, 4] = 3  # no IoU threshold for class 3
-    for impl in (class_nms_batch_cpu, class_nms_batch_plain):
+    cand, head = _candidates(0, torch.float32), HeadConfig()
+    cand.labels[3, 4] = 3  # no IoU threshold for class 3
+    for select in (select_detections, select_detections_plain):
         with pytest.raises(ValueError, match="labels must lie in"):
-            impl(boxes, scores, labels, valid, IOU, 1000, 1000)
-    valid[3, 4] = False  # an invalid row's label is never read
-    batch = (boxes, scores, labels, valid, IOU, 1000, 1000)
-    assert class_nms_batch_cpu(*batch)[0].tolist() == class_nms_batch_plain(*batch)[0].tolist()
-    with pytest.raises(ValueError, match="IoU thresholds must be >= 0"):
-        class_nms_batch(boxes, scores, labels, valid, (0.5, -0.1, 0.5), 1000, 1000)
+            select(cand, head)
+    cand.heat[3, 4] = 0.0  # not a peak: its label is never read
+    assert _same(select_detections(cand, head), select_detections_plain(cand, head))
+    negative = HeadConfig(nms_iou=(0.5, -0.1, 0.5))
+    for select in (select_detections, select_detections_plain):
+        with pytest.raises(ValueError, match="IoU thresholds must be >= 0"):
+            select(cand, negative)

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from model.geometry.boxes import iou_bev_upper_bound, near_pairs, rotated_iou_bev_aligned
-from model.geometry.nms_cpu import class_nms_batch_cpu, grouped_nms_cpu
+from model.geometry.nms_cpu import grouped_nms_cpu
 
 _BOUND_SLACK = 1e-4  # pairs within this of the threshold by the upper bound get the exact IoU
 _PREFIX = 2  # first try NMS on the best _PREFIX x max_out candidates only
@@ -149,44 +149,3 @@ def class_nms(
     cand = torch.cat(parts)  # (N',) class by class
     thresholds = torch.tensor(iou_thresholds, dtype=boxes.dtype, device=boxes.device)[labels[cand]]
     return cand[_grouped_nms(boxes[cand], scores[cand], thresholds, labels[cand], post_top_k)]
-
-
-def class_nms_batch(
-    boxes: Tensor,
-    scores: Tensor,
-    labels: Tensor,
-    valid: Tensor,
-    iou_thresholds: Sequence[float],
-    pre_top_k: int,
-    post_top_k: int,
-) -> tuple[Tensor, Tensor]:
-    """`class_nms` of each batch item's valid candidates: boxes (B, T, 7), scores (B, T), labels (B, T)
-    int64, valid (B, T) bool -> kept (K,) int64 flat indices into B * T on the boxes' device (item by item,
-    each by descending score) and counts (B,) int64 on the host. On CPU tensors one numba kernel does the
-    whole batch (`nms_cpu.class_nms_batch_cpu`: a batch of 32 KITTI streams took 5 ms item by item, mostly
-    the small tensor ops around each item's NMS, and 1 ms so); elsewhere `class_nms_batch_plain`, its twin."""
-    if any(not t >= 0.0 for t in iou_thresholds):
-        raise ValueError(f"IoU thresholds must be >= 0, got {tuple(iou_thresholds)}")
-    if boxes.device.type == "cpu":
-        return class_nms_batch_cpu(boxes, scores, labels, valid, tuple(iou_thresholds), pre_top_k, post_top_k)
-    return class_nms_batch_plain(boxes, scores, labels, valid, iou_thresholds, pre_top_k, post_top_k)
-
-
-def class_nms_batch_plain(
-    boxes: Tensor,
-    scores: Tensor,
-    labels: Tensor,
-    valid: Tensor,
-    iou_thresholds: Sequence[float],
-    pre_top_k: int,
-    post_top_k: int,
-) -> tuple[Tensor, Tensor]:
-    """`class_nms_batch` as `class_nms` of one item after another (the reference twin)."""
-    kept, counts = [], []
-    for i in range(scores.shape[0]):
-        idx = valid[i].nonzero(as_tuple=True)[0]  # (N_i,)
-        keep = class_nms(boxes[i][idx], scores[i][idx], labels[i][idx], iou_thresholds, pre_top_k, post_top_k)
-        kept.append(i * scores.shape[1] + idx[keep])
-        counts.append(keep.numel())
-    flat = torch.cat(kept) if kept else torch.zeros(0, dtype=torch.int64, device=boxes.device)
-    return flat, torch.tensor(counts, dtype=torch.int64)

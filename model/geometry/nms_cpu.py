@@ -221,8 +221,12 @@ def class_nms_batch_cpu(
     pre_top_k: int,
     post_top_k: int,
 ) -> tuple[Tensor, Tensor]:
-    """`nms.class_nms_batch`'s contract on CPU tensors, the batch in one kernel call: kept (K,) int64 flat
-    indices into B * T and counts (B,) int64."""
+    """`nms.class_nms` of each batch item's valid candidates in one kernel call: CPU tensors boxes (B, T, 7),
+    scores (B, T), labels (B, T) int64, valid (B, T) bool -> kept (K,) int64 flat indices into B * T (item
+    by item, each by descending score) and counts (B,) int64. Item by item, `class_nms` (its twin, in
+    `head.select_detections_plain`) spent most of its time in the small tensor ops around each item's NMS."""
+    if any(not t >= 0.0 for t in iou_thresholds):
+        raise ValueError(f"IoU thresholds must be >= 0, got {tuple(iou_thresholds)}")
     nb, nt = scores.shape
     kept = np.zeros((nb, max(min(post_top_k, nt), 0)), np.int64)
     counts = np.zeros(nb, np.int64)
