@@ -103,6 +103,9 @@ def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_
         out, (buffered,) = refine_streams(refiner, [det], [buffered], [s], keep=3)
         assert len(out) == 1 and len(out[0]) == 0
     assert [len(p) for p in buffered] == [30, 40, 50] and buffered[0].shape[1] == 3
+    for p, s in zip(buffered, sectors[2:], strict=True):  # x, y, z of their own, not views of the caller's
+        assert p.is_contiguous() and p.untyped_storage().data_ptr() != s.untyped_storage().data_ptr()
+        assert torch.equal(p, s[:, :3])
     assert refine_streams(None, [det], [buffered], [sectors[0]], keep=3) == ([det], [()])
 
 

@@ -244,6 +244,8 @@ def refine_streams(
     a refiner, whose detections pass unchanged)."""
     if refiner is None:
         return list(dets), [() for _ in dets]
-    sectors = [(*b, n[:, :3]) for b, n in zip(buffered, new, strict=True)]
+    # x, y, z copied out of each new sector (N, C >= 4): the buffer holds 3 columns, not the caller's whole
+    # tensor, and torch.cat of contiguous (N, 3) sectors takes a fifth of the time it takes of column views
+    sectors = [(*b, n[:, :3].contiguous()) for b, n in zip(buffered, new, strict=True)]
     refined = refine_many(refiner, dets, [torch.cat(s) for s in sectors])
     return refined, [s[-keep:] if keep else () for s in sectors]
