@@ -5,8 +5,8 @@
 # 19, then 1,200 steps of 4 scans on streams 21 and 23; lower peak learning rate, half that in the last
 # eleven, direction loss weight 1), trains the box refiner on the last phase's boxes (800 scans each of
 # streams 28 and 29, 8 epochs, 64 points a box: `phim train-refiner`), evaluates the result on the 200
-# held-out simulated scans (stream 7) and copies it to model/weights/tiny-sim.pt. `tiny` reads x, y, z; the shipped weights' phases 1-8 read
-# intensity too and phases 9-17 left it out (docs/model-card.md).
+# held-out simulated scans (stream 7) and copies it to model/weights/tiny-sim.pt. `tiny` reads x, y, z; the
+# shipped weights' phases 1-8 read intensity too and phases 9-17 left it out (docs/model-card.md).
 # Usage: bash scripts/train_default.sh [RUN_DIR]   (default runs/default; an interrupted phase resumes;
 # the fine-tunes go to RUN_DIR/finetune, RUN_DIR/finetune2, ... RUN_DIR/finetune16)
 # Environment: STEPS (3900), FT_STEPS (2600), FT2_STEPS (3000), FT3_STEPS (6000), FT4_STEPS (4000),
