@@ -226,7 +226,7 @@ def select_detections(cand: Candidates, cfg: HeadConfig) -> list[Detections]:
     streams in 1.0 ms against 5.3 item by item), elsewhere `select_detections_plain`, its twin."""
     if cand.boxes.device.type != "cpu":
         return select_detections_plain(cand, cfg)
-    valid = (cand.heat > 0) & (cand.heat >= cfg.score_threshold)  # (B, T) peaks, by heatmap score
+    valid = _peaks(cand.heat, cfg)  # (B, T)
     flat, counts = class_nms_batch_cpu(
         cand.boxes, cand.scores, cand.labels, valid, cfg.nms_iou, cfg.pre_nms_top_k, cfg.post_nms_top_k
     )
@@ -234,11 +234,16 @@ def select_detections(cand: Candidates, cfg: HeadConfig) -> list[Detections]:
     return [Detections(b, s, lab) for b, s, lab in zip(*parts, strict=True)]
 
 
+def _peaks(heat: Tensor, cfg: HeadConfig) -> Tensor:
+    """The candidates that are peaks (heat 0: top-k ran out) at or above the heatmap score threshold."""
+    return (heat > 0) & (heat >= cfg.score_threshold)
+
+
 def select_detections_plain(cand: Candidates, cfg: HeadConfig) -> list[Detections]:
     """`select_detections` item by item with `class_nms` (the reference twin)."""
     result = []
     for i in range(cand.boxes.shape[0]):
-        ok = (cand.heat[i] > 0) & (cand.heat[i] >= cfg.score_threshold)  # (T,) peaks, by heatmap score
+        ok = _peaks(cand.heat[i], cfg)  # (T,)
         boxes, scores, labels = cand.boxes[i][ok], cand.scores[i][ok], cand.labels[i][ok]
         keep = class_nms(boxes, scores, labels, cfg.nms_iou, cfg.pre_nms_top_k, cfg.post_nms_top_k)
         result.append(Detections(boxes[keep], scores[keep], labels[keep]))
