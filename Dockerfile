@@ -1,5 +1,7 @@
 # PHiM detection server, GPU image. Build: docker build -t phim-server .
-# Run:   docker run --gpus all -p 8080:8080 -p 7447:7447 -e PHIM_ZENOH_LISTEN=tcp/0.0.0.0:7447 phim-server
+# Run:   docker run --gpus all -p 8080:8080 -e PHIM_AUTH_TOKENS=/run/secrets/tokens -v ...:/run/secrets phim-server
+# zenoh listens nowhere by default; for vehicles over zenoh add -p 7447:7447 -e PHIM_ZENOH_LISTEN=tls/0.0.0.0:7447
+# -e PHIM_ZENOH_CONFIG_FILE=... (an ACL, mTLS or user/password: deploy/zenoh/; docs/security.md).
 # The one place the image's torch and CUDA versions are named: the base image, whose CUDA build of PyTorch the
 # install keeps. Every other dependency is pinned by constraints.txt (scripts/lock.sh), as in CI.
 ARG BASE_IMAGE=pytorch/pytorch:2.5.1-cuda12.4-cudnn9-runtime
@@ -38,7 +40,7 @@ USER phim
 ENV PHIM_CHECKPOINT=/opt/phim/weights/phim-default.pt \
     PHIM_PORT=8080 \
     PHIM_DEVICE=auto \
-    PHIM_ZENOH_LISTEN=tcp/0.0.0.0:7447
+    PHIM_ZENOH_LISTEN=""
 EXPOSE 8080 7447
 
 HEALTHCHECK --interval=10s --timeout=5s --start-period=120s --retries=3 \

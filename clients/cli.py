@@ -18,6 +18,7 @@ from clients.loadtest.config import Mode
 from clients.options import connect_config, connection_options, every_option
 from model.data.samples import KITTI_VELODYNE
 from phim.options import EnumValue, json_option
+from phim.progress import note
 
 if TYPE_CHECKING:
     from clients.loadtest.config import LoadTestConfig, SourceConfig
@@ -46,7 +47,14 @@ def _data(data: Path | None, synthetic: bool) -> Path | None:
         return None
     if data is not None:
         return data
-    return KITTI_VELODYNE if KITTI_VELODYNE.is_dir() else None
+    if KITTI_VELODYNE.is_dir():
+        return KITTI_VELODYNE
+    note(
+        "loadtest",
+        f"the real samples' KITTI scans are not at {KITTI_VELODYNE} (PHIM_SAMPLES_DIR; README, Quick start): "
+        "sending synthetic scans instead (--data DIR: scans of your own; --synthetic says so and is quiet)",
+    )
+    return None
 
 
 @click.command()
@@ -231,6 +239,12 @@ def _loadtest_config(
 )
 @click.option("--frames", type=Folder, help="Write a bird's-eye-view PNG per scan into this folder.")
 @click.option(
+    "--min-score",
+    type=click.FloatRange(0.0, 1.0),
+    help="Ask for the boxes scored at least this in every reply (0: all) [default: the server's min_score, "
+    "GET /v1/model].",
+)
+@click.option(
     "--rate", type=click.FloatRange(0), default=10.0, show_default=True, help="Turns/s; 0: at once."
 )
 @click.option("--stream-id", default="replay", show_default=True, help="The stream the drive is sent as.")
@@ -259,6 +273,7 @@ def replay(
     source: Path,
     out: Path,
     frames: Path | None,
+    min_score: float | None,
     rate: float,
     stream_id: str,
     topic: str | None,
@@ -287,6 +302,7 @@ def replay(
         topic=topic,
         intensity_scale=intensity_scale,
         mcap=mcap_out,
+        min_score=min_score,
     )
     s = _or_exit(run_replay, cfg)
     if as_json:

@@ -2,8 +2,10 @@
 
 Each scan is cut into the model's sectors in sweep order (model.data.sectorizer.split_scan) and sent in order;
 every sector's answer (detections or the server's error) becomes one record of the prediction file
-(clients.predictions). With `frames_dir`, one bird's-eye-view PNG per scan after its last sector: points,
-the predicted boxes and the labels when they sit beside the scan (KITTI label_2 + calib, nuScenes boxes).
+(clients.predictions). With `min_score`, every sector asks for the boxes scored at least that (else the
+server's min_score applies). With `frames_dir`, one bird's-eye-view PNG per scan after its last sector:
+points, the boxes the reply returned and the labels when they sit beside the scan (KITTI label_2 + calib,
+nuScenes boxes), drawn as `phim eval --pictures` draws (model.data.pictures).
 
 The scans come from scan files (model.data.readers) or from a ROS 2 recording (rosbag2 folder, .mcap, .db3:
 model.data.recordings, one PointCloud2 message per turn). With `mcap`, the points of each scan and the
@@ -52,6 +54,7 @@ class ReplayConfig:
     topic: str | None = None  # recordings: the PointCloud2 topic (None: the only one)
     intensity_scale: float = 1.0  # recordings: intensity multiplier (1/255 for 0..255 drivers)
     mcap: Path | None = None  # write the replayed points and boxes as a Foxglove MCAP here
+    min_score: float | None = None  # the boxes each reply keeps, 0..1; None: the server's min_score
 
 
 @dataclass
@@ -77,7 +80,7 @@ def replay(cfg: ReplayConfig) -> ReplaySummary:
             "model": info,
         }
         with PredictionWriter(cfg.predictions, header) as writer, _scenes(cfg.mcap) as scenes:
-            summary = _run(client, cfg, scans, spt, writer, scenes)
+            summary = _run(client, cfg, scans, spt, writer, scenes, info.get("min_score"))
         if cfg.end_stream:
             client.end_stream(cfg.stream_id)
     return summary
@@ -108,7 +111,8 @@ def _model_info(client: DetectorClient) -> dict[str, Any]:
     except Exception as e:  # zenoh without an HTTP address: the file then says so
         log.warning("model info unavailable: %s", e)
         return {}
-    return {k: info.get(k) for k in ("name", "version", "config", "weights", "classes", "sectors_per_turn")}
+    keys = ("name", "version", "config", "weights", "classes", "sectors_per_turn", "min_score")
+    return {k: info.get(k) for k in keys}
 
 
 def _run(
@@ -118,8 +122,12 @@ def _run(
     spt: int,
     w: PredictionWriter,
     scenes: SceneChannels | None = None,
+    server_min_score: float | None = None,
 ) -> ReplaySummary:
+    """server_min_score: the server's (GET /v1/model; None: unknown), which replies keep without one of
+    the replay's own."""
     summary = ReplaySummary()
+    least = server_min_score if cfg.min_score is None else cfg.min_score  # what the frames say
     period = 1.0 / (cfg.turns_per_s * spt) if cfg.turns_per_s > 0 else 0.0
     t0, seq = time.monotonic(), 0
     for scan_index, scan in enumerate(scans):
@@ -141,6 +149,7 @@ def _run(
                 sent[position],
                 REQUIRED_FIELDS,
                 reset=seq == 0,
+                min_score=cfg.min_score,
             )
             last = _send(client, msg, scan.name, scan_index, position, position == len(sectors) - 1)
             w.write(last)
@@ -150,7 +159,7 @@ def _run(
             seq += 1
         summary.scans += 1
         if cfg.frames_dir is not None and last is not None:
-            summary.frames.append(draw_scan(cfg.frames_dir, scan, last))
+            summary.frames.append(draw_scan(cfg.frames_dir, scan, last, least))
         if scenes is not None and last is not None:
             scenes.log(last, np.concatenate(sent), _stamp(scan, seq - len(sectors), 0, period))
             summary.scenes += 1
@@ -207,7 +216,9 @@ def _send(
     )
 
 
-def draw_scan(folder: Path, scan: Scan, prediction: PredictionRecord) -> Path:
+def draw_scan(folder: Path, scan: Scan, prediction: PredictionRecord, min_score: float | None = None) -> Path:
+    """The scan's points, the boxes of its last sector's reply (which kept those scored at least
+    `min_score`; None: unknown) and its labels where they sit beside it."""
     labels = labels_for(scan.path)
     return draw_bev(
         folder / f"{scan.name}.png",
@@ -215,4 +226,5 @@ def draw_scan(folder: Path, scan: Scan, prediction: PredictionRecord) -> Path:
         BoxSet(prediction.boxes, prediction.class_names, prediction.scores),
         None if labels is None else BoxSet(labels.boxes, labels.names),
         title=f"{scan.name} (context {prediction.context_sectors} sectors)",
+        min_score=min_score,
     )

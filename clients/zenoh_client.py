@@ -12,7 +12,9 @@ over HTTP; without it `end_stream` makes the stream's next sector a reset and `m
 With `auto_workers` (a fleet: `--workers auto`) each sector goes to its stream's owner among the live workers
 under that worker's own keys (clients/zenoh_workers.py). A sector that gets no answer from its owner (no
 reply, zenoh's timeout, or NOT_READY) because that owner has left is sent once more, to the new owner, as a
-reset; a second failure is raised. So a vehicle's sequence goes on across a worker's death, cold.
+reset; a second failure is raised. So a vehicle's sequence goes on across a worker's death, cold. While no
+worker is known, a sector waits for one up to `timeout_s` (the async path in a thread, every sector
+sharing the one wait: the event loop never blocks), then fails with a TransportError.
 """
 
 from __future__ import annotations
@@ -100,8 +102,8 @@ class ZenohClient(DetectorClient):
             raise TransportError(
                 f"zenoh: cannot open a {cfg.mode} session to {list(cfg.connect)}: {e}"
             ) from e
-        self._live = LiveWorkers(self._session, self.keys)
-        self.owners = StreamOwners(self._live, min(2.0, cfg.timeout_s)) if cfg.auto_workers else None
+        self._live = LiveWorkers(self._session, self.keys, min(2.0, cfg.timeout_s))
+        self.owners = StreamOwners(self._live, cfg.timeout_s) if cfg.auto_workers else None
         self.ignored_replies = 0
         self.retries = 0  # sectors sent again to a new owner after theirs left (auto_workers)
         self._http = HttpClient(cfg.http_url, token=cfg.token, ca_cert=cfg.ca_cert) if cfg.http_url else None
@@ -123,7 +125,13 @@ class ZenohClient(DetectorClient):
     async def send_async(self, msg: SectorMessage, on_sent: OnSent | None = None) -> DetectionsReply:
         if self.owners is None:
             return await self._send_to_async(msg, None, on_sent)
-        worker, msg = self._route(msg)
+        if on_sent is not None and not self._live.routable():
+            # no worker known: this sector waits (one bounded wait, shared) and so may the stream's next;
+            # the waits end in the order they began, so the gets still leave in the stream's order
+            on_sent()
+            on_sent = None
+        owner, moved = await self.owners.route_async(msg.stream_id)
+        worker, msg = owner, dataclasses.replace(msg, reset=True) if moved else msg
         try:
             return await self._send_to_async(msg, worker, on_sent)
         except ClientError as e:
@@ -199,11 +207,11 @@ class ZenohClient(DetectorClient):
         comes when the get ends anyway)."""
         outcome = reply_outcome(reply)
         rid = reply.replier_id
-        worker = self._live.worker_at(str(rid.zid)) if rid is not None else None
-        if isinstance(outcome, ClientError) or worker is None:
+        zid = str(rid.zid) if rid is not None else ""
+        if isinstance(outcome, ClientError) or not self._live.holds(zid):
             return outcome, None
-        if expected is not None and worker != expected:
-            self._ignore(reply, f"worker {worker!r}, not {expected!r}")
+        if expected is not None and not self._live.holds(zid, expected):
+            self._ignore(reply, f"a worker, not {expected!r}")
             return outcome, False
         return outcome, True
 

@@ -25,8 +25,10 @@ from contract.keys import DEFAULT_HTTP_PORT as DEFAULT_HTTP_PORT
 from contract.keys import DEFAULT_KEY_PREFIX as DEFAULT_KEY_PREFIX
 from contract.keys import DEFAULT_URL as DEFAULT_URL
 from contract.keys import DEFAULT_ZENOH_ENDPOINT as DEFAULT_ZENOH_ENDPOINT
+from contract.keys import PROBE_CHUNK as PROBE_CHUNK
 from contract.keys import KeySpace as KeySpace
 from contract.placement import stream_owner as stream_owner
+from contract.wire import DEFAULT_MIN_SCORE as DEFAULT_MIN_SCORE
 from contract.wire import INT64_MAX as INT64_MAX
 from contract.wire import MAX_LIST_LEN as MAX_LIST_LEN
 from contract.wire import (
@@ -45,6 +47,10 @@ POINT_DTYPE = "<f4"
 # the point columns a sector may carry, in the order the model reads them; each sector starts with the first 4
 POINT_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity", "elongation")
 REQUIRED_FIELDS: tuple[str, ...] = POINT_FIELDS[:4]
+# the coordinate range a sector's points may have: finite, |x|, |y|, |z| <= MAX_COORDINATE_M metres (no LiDAR
+# returns past a few hundred); a server answers a sector with any point beyond it INVALID_FIELD on `points`,
+# whole (docs/protocol.md, "A sector")
+MAX_COORDINATE_M = 10_000.0
 MSGPACK = "application/msgpack"  # the sector and reply media type (HTTP Content-Type, zenoh encoding)
 MSGPACK_TYPES = (MSGPACK, "application/x-msgpack", "application/vnd.msgpack")  # accepted as the same
 JSON = "application/json"  # HTTP only: the same messages, bytes as base64
@@ -99,6 +105,8 @@ class SectorMessage:
     points: np.ndarray  # (N, C) float32, C >= 4
     fields: tuple[str, ...]  # names of the C columns: ("x", "y", "z", "intensity"[, "elongation", ...])
     reset: bool = False
+    # the reply keeps the boxes scored at least this (0..1); None: the server's min_score
+    min_score: float | None = None
 
 
 @dataclass(frozen=True)
@@ -297,6 +305,7 @@ def encode_sector(msg: SectorMessage, media_type: str = MSGPACK) -> bytes:
         points=_wire_array(points),
         fields=list(msg.fields),
         reset=msg.reset,
+        min_score=UNSET if msg.min_score is None else msg.min_score,  # absent: the server's
     )
     return _format(media_type).encoder.encode(body)
 
@@ -321,6 +330,7 @@ def decode_sector(
         points=_points(body.points, len(fields), limits),
         fields=fields,
         reset=body.reset,
+        min_score=None if body.min_score is UNSET else body.min_score,
     )
 
 

@@ -10,6 +10,7 @@ DEFAULT_KEY_PREFIX = "phim/v1"
 DEFAULT_HTTP_PORT = 8080
 DEFAULT_URL = f"http://127.0.0.1:{DEFAULT_HTTP_PORT}"
 DEFAULT_ZENOH_ENDPOINT = "tcp/127.0.0.1:7447"
+PROBE_CHUNK = "~probe"  # the stream chunk of a worker probe: `~` is in no stream ID, so no stream is probed
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,12 @@ class KeySpace:
 
     def sectors(self, stream_id: str, worker_id: str | None = None) -> str:
         return f"{self.prefix}/streams/{stream_id}{_at(worker_id)}/sectors"
+
+    def probe(self, worker_id: str) -> str:
+        """Where a client checks that a worker's token is real: a get on the worker's own sector key with the
+        stream chunk PROBE_CHUNK (never a stream ID) and no payload, answered by the worker with an error
+        (whose replier is the worker's zenoh session) and counted nowhere (clients/zenoh_workers.py)."""
+        return self.sector(PROBE_CHUNK, worker_id)
 
     def worker_sector_queryable(self, worker_id: str) -> str:  # the same, under one worker's keys
         return self.sector("*", worker_id)

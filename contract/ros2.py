@@ -32,8 +32,9 @@ GID_SIZE = 16  # RMW_GID_STORAGE_SIZE since Iron
 ATTACHMENT_SIZE = 8 + 8 + 1 + GID_SIZE
 _INT64 = struct.Struct("<q")
 _OLD_KEYS = (b"sequence_number", b"source_timestamp", b"source_gid")  # 0.2.0 .. 0.2.3
-# a ROS name's tokens: letters, digits, underscores, not starting with a digit (design.ros2.org, "Topic and
-# Service name mapping"); `~` and substitutions are for nodes to expand, never on the wire
+# a ROS name's tokens: letters, digits, underscores, not starting with a digit, and no name with repeated
+# underscores (design.ros2.org, "Topic and Service name mapping"; rcl's topic name validation refuses `__`);
+# `~` and substitutions are for nodes to expand, never on the wire
 _TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
@@ -53,10 +54,11 @@ def check_topic(name: str, what: str = "topic") -> str:
     ValueError saying what is wrong otherwise."""
     full = name if name.startswith("/") else "/" + name
     tokens = full[1:].split("/")
-    if not full[1:] or not all(_TOKEN.fullmatch(t) for t in tokens):
+    if not full[1:] or not all(_TOKEN.fullmatch(t) for t in tokens) or "__" in full:
         raise ValueError(
             f"{what} {name!r}: expected a ROS 2 topic name, /-separated tokens of letters, digits and "
-            "underscores, none empty or starting with a digit (e.g. /car1/lidar/points)"
+            "underscores, none empty or starting with a digit, no two underscores in a row (e.g. "
+            "/car1/lidar/points)"
         )
     return full
 

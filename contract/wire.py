@@ -18,6 +18,9 @@ from msgspec import UNSET, Meta, Struct, UnsetType, ValidationError
 INT64_MAX = 2**63 - 1
 STREAM_ID_PATTERN = "^[A-Za-z0-9_.-]+$"
 MAX_LIST_LEN = 1024  # the schema's own ceiling on `fields` (the server's max_fields is lower)
+# a server's min_score unless it is set otherwise (`phim serve --min-score`; GET /v1/model says what it is):
+# the shipped default model's best vehicle F1, real samples and simulated scans together (docs/model-card.md)
+DEFAULT_MIN_SCORE = 0.5
 
 
 class ErrorCode(enum.StrEnum):
@@ -50,6 +53,15 @@ ColdStart = Annotated[
     ),
 ]
 WorkerId = Annotated[str, Meta(description="the ID of the worker that ran the sector")]
+MinScore = Annotated[
+    float,
+    Meta(
+        ge=0.0,
+        le=1.0,
+        description="the reply keeps the boxes scored at least this (0: every box); absent: the server's "
+        "min_score (GET /v1/model)",
+    ),
+]
 BOXES = "x, y, z (box centre), l, w, h (metres), yaw (radians), sensor frame"
 
 
@@ -90,6 +102,7 @@ class WireSector(Struct, forbid_unknown_fields=True, kw_only=True):
     points: Annotated[WireArray, Meta(description='"<f4" [N, C]')]
     fields: Annotated[list[str], Meta(max_length=MAX_LIST_LEN, description="C names: x, y, z, intensity...")]
     reset: Annotated[bool, Meta(description="start the stream over (fresh state; seq may restart)")] = False
+    min_score: MinScore | UnsetType = UNSET  # absent: the server's min_score (GET /v1/model)
 
 
 class WireDetections(Struct, tag_field="kind", tag="detections"):
@@ -131,6 +144,7 @@ _NOUNS = {  # msgspec's type names in its messages, as said in ours
     "array": "an array",
     "str": "a string",
     "int": "an integer",
+    "float": "a number",
     "bool": "true or false",
     "bytes": "binary (msgpack bin; base64 in JSON)",
     "ext": "a msgpack extension type (not allowed)",

@@ -48,8 +48,8 @@ def save_checkpoint(path: str | Path, model: PHiM, meta: dict[str, Any] | None =
 
 
 # how the model runs, not what it computes (the selective scan's implementation, the fixed-shape step's
-# rows per buffered sector): a checkpoint loads under any of these settings
-EXECUTION_FIELDS = frozenset({"backbone.mamba.scan", "backbone.mamba.chunk_size", "sector_voxels"})
+# rows per buffered sector, the ego vehicle's footprint and its fields): a checkpoint loads under any of these
+EXECUTION_FIELDS = frozenset({"backbone.mamba.scan", "backbone.mamba.chunk_size", "sector_voxels", "ego"})
 
 
 def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[str]:
@@ -57,7 +57,7 @@ def config_diff(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> list[
     out = []
     for key in sorted(set(a) | set(b)):
         name = f"{prefix}{key}"
-        if name in EXECUTION_FIELDS:
+        if name in EXECUTION_FIELDS or name.split(".")[0] in EXECUTION_FIELDS:
             continue
         va, vb = a.get(key), b.get(key)
         if isinstance(va, dict) and isinstance(vb, dict):

@@ -183,6 +183,23 @@ class RefineConfig:
 
 
 @dataclass(frozen=True)
+class EgoFootprint:
+    """The ego vehicle around the sensor: a rectangle in the sensor frame (metres; x forward, y left). Its
+    points are dropped before voxelization and no box centred in it is returned (`model.ego`). The default
+    fits a mid-size car with the sensor on its roof, about over its middle (docs/model.md, "The ego
+    vehicle": KITTI's Passat, its own returns and the ground it hides)."""
+
+    x_min: float = -2.5
+    x_max: float = 2.5
+    y_min: float = -1.6
+    y_max: float = 1.6
+
+    def __post_init__(self) -> None:
+        if not (self.x_min < self.x_max and self.y_min < self.y_max):
+            raise ValueError(f"ego footprint {self}: expected x_min < x_max and y_min < y_max")
+
+
+@dataclass(frozen=True)
 class PHiMConfig:
     name: str
     grid: PolarGridConfig
@@ -197,6 +214,8 @@ class PHiMConfig:
     # voxels fails alone); about 1.5x the most seen on the real KITTI sectors (tiny 4,254; paper 14,977)
     sector_voxels: int = 8192
     refine: RefineConfig | None = None  # the box refiner, trained after the detector (`phim train-refiner`)
+    # the ego vehicle (no weights: where the model runs on a sensor's scans); None: every point is read
+    ego: EgoFootprint | None = field(default_factory=EgoFootprint)
 
     def __post_init__(self) -> None:
         per_sector, rem = divmod(self.grid.theta_bins, self.sectors_per_turn)
@@ -238,6 +257,7 @@ class PHiMConfig:
             history=MambaHistory(d.get("history", MambaHistory.TURN)),
             sector_voxels=d.get("sector_voxels") or _default_sector_voxels(d["name"]),
             refine=RefineConfig(**_tuples(d["refine"])) if d.get("refine") else None,
+            ego=EgoFootprint(**d["ego"]) if d.get("ego") else None if "ego" in d else EgoFootprint(),
         )
 
 

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from model.config import PHiMConfig, ScanImpl
+from model.config import EgoFootprint, PHiMConfig, ScanImpl
+from model.ego import drop_ego_boxes, drop_ego_points
 from model.geometry.boxes import Detections
 from model.geometry.sparse_tensor import BATCH, SparseTensor
 from model.layers.bev_backbone import BEVBackbone
@@ -66,6 +67,11 @@ class PHiM(nn.Module):
         self.refiner = None
         self.cfg = dataclasses.replace(self.cfg, refine=None)
 
+    def set_ego(self, ego: EgoFootprint | None) -> None:
+        """The ego vehicle's footprint from here on (None: every point read, every box kept): a deployment's
+        car, not the weights' (a server's `--ego-footprint`)."""
+        self.cfg = dataclasses.replace(self.cfg, ego=ego)
+
     def init_states(self, num_streams: int) -> list[MambaState]:
         return self.backbone.init_states(num_streams, self.device)
 
@@ -107,13 +113,15 @@ class PHiM(nn.Module):
 
     def forward_turn(self, sectors: list[Tensor]) -> tuple[list[Detections], Encoded]:
         """The whole turn in one pass: all sectors of one stream, global Mamba over their concatenation (and
-        the box refiner, where the model has one, over all their points)."""
+        the box refiner, where the model has one, over all their points); without the ego vehicle's points
+        and boxes (`cfg.ego`), as the streaming step."""
+        sectors = drop_ego_points(sectors, self.cfg.ego)
         layout = StreamLayout.single_stream(len(sectors), self.device)
         enc = self.encode(sectors, layout, self.init_states(1))
         (det,) = self.detect([enc.sectors])
         if self.refiner is not None:
             det = refine(self.refiner, det, torch.cat(sectors))
-        return [det], enc
+        return [drop_ego_boxes(det, self.cfg.ego)], enc
 
 
 def split_sectors(x: SparseTensor) -> list[SectorFeatures]:

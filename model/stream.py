@@ -16,6 +16,7 @@ from torch import Tensor
 
 from model.config import Engine, Precision
 from model.detector import PHiM, SectorFeatures
+from model.ego import drop_ego_boxes, drop_ego_points
 from model.fold_bn import fold_batchnorms
 from model.geometry.boxes import Detections
 from model.layers.head import decode
@@ -93,12 +94,14 @@ class StreamingDetector:
     ) -> tuple[list[SectorResult], list[StreamState]]:
         """One sector per stream: points[i] (N_i, C) float32 goes with states[i].
 
-        Returns per stream its SectorResult and its new StreamState (same order).
+        Returns per stream its SectorResult and its new StreamState (same order). The points on the ego
+        vehicle (`cfg.ego`, model.ego) are dropped first, the boxes centred on it last.
         """
         if len(points) != len(states):
             raise ValueError(f"{len(points)} sectors but {len(states)} states")
         for p in points:
             self.validate(p)
+        points = drop_ego_points(points, self.cfg.ego)
         dev = self.device
         host, points = points, [p.to(dev, non_blocking=True) for p in points]
         layout = StreamLayout.one_per_item(len(points), dev)
@@ -114,6 +117,7 @@ class StreamingDetector:
         detections = decode(maps, self.cfg.head, self.cfg.bev)
         buffered = [s.points for s in states]  # the refiner reads the points where the caller holds them
         detections, kept = refine_streams(self.model.refiner, detections, buffered, host, keep)
+        detections = [drop_ego_boxes(d, self.cfg.ego) for d in detections]
         results, new_states = [], []
         for i, (s, scene, det) in enumerate(zip(states, scenes, detections, strict=True)):
             idx = torch.tensor([i], device=dev)

@@ -1,5 +1,6 @@
-"""A sector message's points, checked against the model and converted to a tensor before it is queued: a bad
-sector never enters a batch (its own INVALID_FIELD error names the field and what was expected)."""
+"""A sector message's points, checked against the model and the contract's value rules (finite, coordinates
+within `MAX_COORDINATE_M`) and converted to a tensor before it is queued: a bad sector never enters a batch
+(its own INVALID_FIELD error names the field and what was expected)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from contract import POINT_FIELDS, ErrorCode, SectorMessage, ServiceError
+from contract import MAX_COORDINATE_M, POINT_FIELDS, ErrorCode, SectorMessage, ServiceError
 from model.config import PHiMConfig
 
 
@@ -37,6 +38,15 @@ def sector_points(msg: SectorMessage, cfg: PHiMConfig) -> torch.Tensor:
             f"points: shape {points.shape}; expected 2-D (N, C>=4): x, y, z, intensity[, ...]",
             "points",
         )
+    check_values(points)
+    return torch.from_numpy(points)
+
+
+def check_values(points: np.ndarray) -> None:
+    """points (N, C>=3) float32: every value finite and every coordinate within the contract's range
+    (|x|, |y|, |z| <= MAX_COORDINATE_M), else INVALID_FIELD on `points` naming the first bad row and the rule.
+    One rule for all: a sector with a bad point is refused whole, never cut (HTTP, zenoh and the ROS 2 bridge
+    all submit through here)."""
     # numpy, not torch: a torch op here would start a second OpenMP team in the transport's thread,
     # competing for the cores with the device loop's (the model checks its input again anyway)
     if not np.isfinite(points).all():  # a flat check first: the per-row one is ~30x slower
@@ -47,7 +57,22 @@ def sector_points(msg: SectorMessage, cfg: PHiMConfig) -> torch.Tensor:
             "expected finite float32",
             "points",
         )
-    return torch.from_numpy(points)
+    # a flat check first, every column (intensity is inside the range too, as a rule): 0.05 against 0.7 ms
+    # for 120,000 points' strided x, y, z on the 2-core machine
+    flat = points.reshape(-1)
+    if flat.size and not (flat.max() <= MAX_COORDINATE_M and flat.min() >= -MAX_COORDINATE_M):
+        far = np.abs(points[:, :3]) > MAX_COORDINATE_M  # (N, 3): the coordinates, per row
+        if not far.any():
+            return
+        row = int(far.any(axis=1).argmax())
+        col = int(far[row].argmax())
+        raise ServiceError(
+            ErrorCode.INVALID_FIELD,
+            f"points: {int(far.any(axis=1).sum())} rows have a coordinate beyond {MAX_COORDINATE_M:g} m (row "
+            f"{row} first: {POINT_FIELDS[col]} = {float(points[row, col]):g}); expected |x|, |y|, |z| <= "
+            f"{MAX_COORDINATE_M:g} m",
+            "points",
+        )
 
 
 @dataclass

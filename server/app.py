@@ -31,7 +31,7 @@ from contract import (
     encode_reply,
 )
 from model.checkpoint import load_checkpoint
-from model.config import Engine, Precision, get_config
+from model.config import EgoFootprint, Engine, Precision, get_config
 from model.device import pick_device
 from model.graph.engine import Detector, streaming_detector
 from server.auth import Grant, TokenFile
@@ -39,6 +39,7 @@ from server.default_model import init_model, load_default_model
 from server.metrics import Metrics
 from server.openapi import error_responses, publish_sector_route
 from server.settings import Settings
+from server.tenants import tenant_of_id
 from server.transports import start_live_view, start_ros2, start_zenoh
 from server.warmup import package_version
 from server.worker import Worker
@@ -75,6 +76,8 @@ def build_detector(settings: Settings) -> tuple[Detector, str]:
         )
     if not settings.refiner:
         model.drop_refiner()
+    if settings.ego_footprint is not None:  # () is 'off'
+        model.set_ego(EgoFootprint(*settings.ego_footprint) if settings.ego_footprint else None)
     det = streaming_detector(
         model,
         Engine(settings.engine),
@@ -110,7 +113,9 @@ def create_app(
 
         metrics = Metrics()
         view = await asyncio.to_thread(start_live_view, settings, metrics)  # before any sector is answered
-        worker = Worker(load, settings.worker_config(), metrics, None if view is None else view.observe)
+        observer = None if view is None else view.observe
+        tenant_of = tenant_of_id if tokens is None else tokens.tenant_of  # server/tenants.py
+        worker = Worker(load, settings.worker_config(), metrics, observer, tenant_of)
         worker.start()
         zenoh: ZenohTransport | None = None
         ros2: Closeable | None = None
@@ -131,10 +136,14 @@ def create_app(
             if view is not None:  # last: it shows the sectors the drain answered
                 await asyncio.to_thread(view.stop)
 
-    app = FastAPI(title="PHiM detection server", version=package_version(), lifespan=lifespan)
+    # with tokens, the API's description needs one too (docs/security.md)
+    no_docs = {} if tokens is None else {"openapi_url": None, "docs_url": None, "redoc_url": None}
+    app = FastAPI(title="PHiM detection server", version=package_version(), lifespan=lifespan, **no_docs)
+    if tokens is not None:
+        _add_guarded_docs(app)
     app.add_exception_handler(ServiceError, _service_error_handler)  # type: ignore[arg-type]
     _add_routes(app)
-    publish_sector_route(app, SECTOR_PATH)
+    publish_sector_route(app, SECTOR_PATH, settings.limits())
     return app
 
 
@@ -180,7 +189,14 @@ def authorize(request: Request, stream_id: str | None = None) -> Grant | None:
     tokens = _services(request).tokens
     if tokens is None:
         return None
-    scheme, _, token = request.headers.get("authorization", "").partition(" ")
+    sent = request.headers.getlist("authorization")
+    if len(sent) > 1:  # which one counts would depend on the proxy or framework that reads it: neither
+        raise ServiceError(
+            ErrorCode.UNAUTHORIZED,
+            f"Authorization: {len(sent)} headers; expected exactly one 'Bearer <token>'",
+            "Authorization",
+        )
+    scheme, _, token = (sent[0] if sent else "").partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
         raise ServiceError(
             ErrorCode.UNAUTHORIZED, "Authorization: missing; expected 'Bearer <token>'", "Authorization"
@@ -325,6 +341,17 @@ ROUTES: list[tuple[str, str, Callable[..., Any], tuple[ErrorCode, ...]]] = [
 
 
 SECTOR_PATH = "/v1/streams/{stream_id}/sectors"
+
+
+def _add_guarded_docs(app: FastAPI) -> None:
+    """With tokens: GET /openapi.json needs one, like every route but /health (FastAPI's own route is open);
+    /docs and /redoc are not served (a browser sends no bearer token to fetch the document with)."""
+
+    async def openapi(request: Request) -> Response:
+        authorize(request)
+        return JSONResponse(app.openapi())
+
+    app.add_route("/openapi.json", openapi, methods=["GET"], include_in_schema=False)
 
 
 def _add_routes(app: FastAPI) -> None:

@@ -8,8 +8,13 @@ A token grants the streams whose ID starts with its prefix (send sectors, read, 
 every stream and lists them all. Only hashes are stored: tokens are 256 random bits, so one SHA-256 is as
 good as a slow KDF and costs a microsecond per request. `add_token` (`phim auth add-token`) appends a line
 and returns the new token, printed once. The server stats the file on every check and re-reads it when it
-changed (rotation without restart: add the new token, move the clients, delete the old line); a file that
-fails to parse keeps the last good table and logs the error.
+changed (rotation without restart: add the new token, move the clients, delete the old line). A file that
+cannot be read or parsed (a half-written save, a line no JSON parser takes) keeps the last good table; a
+file that is gone revokes every token (fail closed: deleting the file is how an operator shuts every client
+out). Either is logged once, as an ERROR, not once per request.
+
+A token's prefix also names a tenant (server/tenants.py): `tenant_of` gives a stream the longest stream
+token prefix its ID starts with.
 """
 
 from __future__ import annotations
@@ -23,6 +28,8 @@ import secrets
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+
+from server.tenants import tenant_of_id
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +65,8 @@ def parse_tokens(text: str, source: str) -> dict[str, Grant]:
         try:
             entry = json.loads(line)
             digest, prefix, admin = entry["sha256"], entry.get("prefix", ""), entry.get("admin", False)
-        except (json.JSONDecodeError, KeyError, TypeError) as e:
+        except (ValueError, KeyError, TypeError, AttributeError, RecursionError) as e:
+            # ValueError: bad JSON, or an integer of over 4,300 digits; RecursionError: JSON nested too deep
             raise TokenFileError(
                 f"{source}:{n}: {e}; expected a JSON object with sha256, prefix, admin"
             ) from None
@@ -76,17 +84,26 @@ class TokenFile:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self._lock = threading.Lock()
-        self._stamp = self._stat()
+        self._stamp: tuple[int, int, int] | None = self._stat()  # None: the file is gone
         self._table = parse_tokens(self._read(), str(self.path))  # a bad file at start-up: TokenFileError
+        self._prefixes = _stream_prefixes(self._table)
+        self._fault: str | None = None  # what is wrong with the file now (logged once)
 
     def grant(self, token: str) -> Grant | None:
-        """The token's grant, or None for an unknown token."""
+        """The token's grant, or None for an unknown token (every token while the file is gone)."""
         self._reload_if_changed()
         return self._table.get(token_hash(token))
 
-    def _stat(self) -> tuple[int, int, int]:
+    def tenant_of(self, stream_id: str) -> str:
+        """A stream's tenant: the longest stream-token prefix its ID starts with, else `tenant_of_id`."""
+        self._reload_if_changed()
+        return next((p for p in self._prefixes if stream_id.startswith(p)), None) or tenant_of_id(stream_id)
+
+    def _stat(self) -> tuple[int, int, int] | None:
         try:
             st = os.stat(self.path)
+        except FileNotFoundError:
+            return None
         except OSError as e:
             raise TokenFileError(f"{self.path}: {e.strerror}") from None
         return st.st_ino, st.st_mtime_ns, st.st_size
@@ -100,21 +117,37 @@ class TokenFile:
     def _reload_if_changed(self) -> None:
         try:
             stamp = self._stat()
-        except TokenFileError as e:
-            log.error("auth: %s; keeping the %d tokens read before", e, len(self._table))
+        except TokenFileError as e:  # not readable (permissions): keep the table
+            self._log_fault(f"{e}; keeping the {len(self._table)} tokens read before")
             return
         if stamp == self._stamp:
             return
         with self._lock:
             if stamp == self._stamp:
                 return
+            if stamp is None:  # deleted: fail closed
+                self._table, self._prefixes, self._stamp = {}, [], None
+                self._log_fault(f"{self.path}: no such file; every token is refused until it is back")
+                return
             try:
                 table = parse_tokens(self._read(), str(self.path))
-            except TokenFileError as e:
-                log.error("auth: %s; keeping the %d tokens read before", e, len(self._table))
+            except TokenFileError as e:  # not re-read until it changes again
+                self._stamp = stamp
+                self._log_fault(f"{e}; keeping the {len(self._table)} tokens read before")
                 return
-            self._table, self._stamp = table, stamp
+            self._table, self._prefixes, self._stamp = table, _stream_prefixes(table), stamp
+            self._fault = None
             log.info("auth: %s re-read: %d tokens", self.path, len(table))
+
+    def _log_fault(self, fault: str) -> None:
+        if fault != self._fault:
+            self._fault = fault
+            log.error("auth: %s", fault)
+
+
+def _stream_prefixes(table: dict[str, Grant]) -> list[str]:
+    """The stream tokens' prefixes, longest first (the first one a stream ID starts with is its tenant)."""
+    return sorted({g.prefix for g in table.values() if not g.admin and g.prefix}, key=len, reverse=True)
 
 
 def add_token(path: str | Path, prefix: str, admin: bool = False, note: str = "") -> str:

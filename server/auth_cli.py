@@ -17,7 +17,12 @@ from server.auth import add_token
     type=click.Path(dir_okay=False, path_type=Path),
     help="The token file (created owner-only if missing); `phim serve --auth-tokens` reads it.",
 )
-@click.option("--prefix", default="", help="The token may use the streams whose ID starts with this.")
+@click.option(
+    "--prefix",
+    default="",
+    help="The token may use the streams whose ID starts with this; they are one tenant (shares: phim serve "
+    "--tenant-max-streams, --tenant-queue-size).",
+)
 @click.option("--admin", is_flag=True, help="Every stream, and the list of all streams.")
 @click.option("--note", default="", help="Who or what the token is for (kept beside the hash).")
 def add_token_cmd(path: Path, prefix: str, admin: bool, note: str) -> None:

@@ -4,8 +4,10 @@ its environment variable (PHIM_<NAME>), default and help live. A flag given wins
 from __future__ import annotations
 
 import enum
+import faulthandler
 import logging
 import signal
+import sys
 import types
 import typing
 from pathlib import Path
@@ -87,6 +89,9 @@ def run_server(settings: Settings) -> None:
     from server.logs import configure_logging
 
     configure_logging(settings.log_level, settings.log_format)
+    # a native crash (a kernel's segfault) prints every thread's Python stack to stderr (the process's own,
+    # not a caller's replacement of sys.stderr) before the process dies: the log says where
+    faulthandler.enable(sys.__stderr__)
     if settings.threads:
         torch.set_num_threads(settings.threads)
     logging.getLogger("phim.serve").info(
@@ -125,7 +130,12 @@ def uvicorn_config(app: Any, settings: Settings, log_level: str | None = None) -
         log_level=log_level or settings.log_level,
         access_log=settings.access_log,
         ws="none",
-        http=with_deadlines(settings.http_header_timeout_s, settings.http_body_timeout_s),
+        http=with_deadlines(
+            settings.http_header_timeout_s,
+            settings.http_body_timeout_s,
+            settings.http_max_header_bytes,
+            settings.http_max_headers,
+        ),
         ssl_certfile=settings.tls_cert,
         ssl_keyfile=settings.tls_key,
         lifespan="on",

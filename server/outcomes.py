@@ -1,4 +1,5 @@
-"""A sector's answer from its step outcome: its detections, or its own error when the step rejected it."""
+"""A sector's answer from its step outcome: its detections scored at least the sector's `min_score` (else the
+server's), or its own error when the step rejected it."""
 
 from __future__ import annotations
 
@@ -20,18 +21,23 @@ def sector_answer(
     model_s: float,
     class_names: tuple[str, ...],
     worker_id: str,
+    min_score: float = 0.0,
 ) -> DetectionsReply | ServiceError:
     """cold: the sector ran on a fresh state; t0: time.monotonic() when the forward started; model_s: its
-    seconds; worker_id: the worker that ran it."""
+    seconds; worker_id: the worker that ran it; min_score: the server's threshold, unless the sector has
+    its own."""
     if isinstance(r, SectorRejected):  # too big for the fixed-shape step: this sector only, state unchanged
         return ServiceError(ErrorCode.INVALID_FIELD, f"{r.message} (seq {p.msg.seq} not run)", r.field)
     d = r.detections
-    labels = d.labels.cpu().numpy().astype(np.int32)  # (K,)
+    least = min_score if p.msg.min_score is None else p.msg.min_score
+    scores = d.scores.cpu().numpy().astype(np.float32, copy=False)  # (K,)
+    keep = scores >= np.float32(least)  # (K,)
+    labels = d.labels.cpu().numpy().astype(np.int32)[keep]  # (K',)
     return DetectionsReply(
         stream_id=p.msg.stream_id,
         seq=p.msg.seq,
-        boxes=d.boxes.cpu().numpy().astype(np.float32, copy=False),  # (K, 7)
-        scores=d.scores.cpu().numpy().astype(np.float32, copy=False),  # (K,)
+        boxes=d.boxes.cpu().numpy().astype(np.float32, copy=False)[keep],  # (K', 7)
+        scores=scores[keep],  # (K',)
         labels=labels,
         class_names=tuple(class_names[i] for i in labels),
         context_sectors=r.context_sectors,

@@ -10,6 +10,15 @@ it comes); each sector goes to the worker's `submit` on one stream, in sweep ord
 its answer is published on the detections topic with the input's stamp and frame_id. An error answer is
 logged and counted, and nothing is published (ROS has no error channel).
 
+Pacing: one sector in flight; the next is submitted once the previous is answered (a stream runs one sector
+per step anyway, so a turn's sectors queued at once would only wait out their deadlines on a busy CPU).
+Sequence: the bridge numbers its own sectors (a driver's restart changes nothing); when another sender has
+moved the stream's seq on (a sector with a huge seq on the bridge's stream ID), the worker answers the next
+sector stale and the bridge sends the one after as a reset, so such a sender costs the vehicle a sector and
+its context, never its stream. Points: one rule for a non-finite value, in a coordinate (a driver's "no
+return") or the intensity alike: the point is dropped. `header.frame_id` (copied into every box's header) is
+at most `max_string_len` characters; a longer one refuses the scan.
+
 Threads, as in the zenoh transport (no Python in a zenoh callback, no zenoh call in a future's callback):
 zenoh queues samples in a bounded FIFO; one receiver thread decodes, cuts and submits; the futures'
 done-callbacks put answers in an outbox; one publisher thread encodes and publishes them.
@@ -152,7 +161,8 @@ class Ros2Bridge:
         self._receiver: threading.Thread | None = None
         self._publisher: threading.Thread | None = None
         self._cutter: _Cutter | None = None  # made by announce: the model's sectors per turn are known then
-        self._seq = 0
+        self._seq = 0  # the bridge numbers its own sectors: a driver's restart changes nothing here
+        self._reset_next = False  # the next sector restarts the stream (its seq was taken over)
         self._senders: set[bytes] = set()  # GIDs of the publishers heard (logged once each)
         self._throttle = _Throttle()
 
@@ -243,6 +253,7 @@ class Ros2Bridge:
             if self._closing:
                 return
             self._closing = True
+            self._cond.notify_all()  # the receiver stops pacing: what is left is submitted at once
         for entity in (*self._input_tokens, self._subscriber):
             if entity is not None:
                 entity.undeclare()  # closes the channel: the receiver drains it and stops
@@ -294,7 +305,13 @@ class Ros2Bridge:
         except ValueError as e:
             self._reject(ErrorCode.INVALID_FIELD, str(e))
             return
-        header = Header(max(0, stamp_ns(msg)), str(msg.header.frame_id))
+        frame_id = str(msg.header.frame_id)
+        if len(frame_id) > self.limits.max_string_len:  # copied into every box's and marker's header
+            why = f"header.frame_id: {len(frame_id)} characters; at most {self.limits.max_string_len}"
+            self._reject(ErrorCode.INVALID_FIELD, why + " (--max-string-len)")
+            return
+        points = points[np.isfinite(points[:, 3])]  # (N', 4): one rule, a point with any NaN/inf is dropped
+        header = Header(max(0, stamp_ns(msg)), frame_id)
         assert self._cutter is not None  # announce made it before the subscriber
         for index, sector, head in self._cutter.push(points, header):
             self._submit(index, sector, head)
@@ -304,12 +321,14 @@ class Ros2Bridge:
             self._reject(ErrorCode.TOO_LARGE, f"a sector of {points.shape[0]} points (--max-points)")
             return
         job = _Job(self._seq, index, header)
+        with self._cond:  # paced: a stream runs one sector at a time, so the next waits here, not queued
+            self._cond.wait_for(lambda: not self._inflight or self._closing)
+            reset, self._reset_next = self._reset_next or job.seq == 0, False
+            self._inflight.add(job)
         msg = SectorMessage(
-            self.cfg.stream, job.seq, index, header.stamp_ns, points, REQUIRED_FIELDS, reset=job.seq == 0
+            self.cfg.stream, job.seq, index, header.stamp_ns, points, REQUIRED_FIELDS, reset=reset
         )
         self._seq += 1
-        with self._cond:
-            self._inflight.add(job)
         future = submit_or_fail(self.submit, msg)
         future.add_done_callback(partial(self._settled, job))
 
@@ -345,6 +364,9 @@ class Ros2Bridge:
             outcome: DetectionsReply | ServiceError = future.result(timeout=0)
         except ServiceError as e:
             outcome = e
+            if e.code is ErrorCode.STALE_SEQUENCE:  # another sender moved the stream's seq on: restart it
+                with self._cond:
+                    self._reset_next = True
         except Exception as e:
             outcome = ServiceError(ErrorCode.INTERNAL, f"{type(e).__name__}: {e}")
         self._outbox.put((job, outcome))

@@ -8,6 +8,10 @@ A fixed-shape engine pads a batch to its bucket (1, 2, 4, ... streams: `model.gr
 stream costs about as much as a real one. So, while `max_wait` allows, it also runs at once a batch that
 fills a bucket exactly when the streams not queued yet could not fill the next bucket up (e.g. 4 queued of
 5 live streams: 4 now, not 5 padded to 8 later); a batch that just misses a bucket (3 of 5) waits.
+
+Which streams' sectors a batch takes is fair between tenants (server/tenants.py): `fair_order` lists the
+queued streams round-robin by tenant (each tenant's oldest first, the tenant with the oldest sector first),
+so a tenant with many queued streams gets no more of a batch than one with few, while they have sectors.
 """
 
 from __future__ import annotations
@@ -46,6 +50,17 @@ def decide(
     if buckets is not None and heads in buckets and _next_bucket(heads, buckets) > target:
         return Dispatch(heads)  # a full bucket now; waiting could only pad a bigger one
     return Wait(max_wait_s - waited_s)
+
+
+def fair_order(tenants: Sequence[str]) -> list[int]:
+    """The queued streams' order for a batch: `tenants[i]` is the tenant of the i-th oldest head; the result
+    takes each tenant's heads in turn (round-robin, tenants by their oldest head), so the first k of it give
+    every tenant with heads an equal part of k (max-min fair), the oldest of each tenant first."""
+    by_tenant: dict[str, list[int]] = {}
+    for i, tenant in enumerate(tenants):
+        by_tenant.setdefault(tenant, []).append(i)
+    rounds = max((len(heads) for heads in by_tenant.values()), default=0)
+    return [heads[r] for r in range(rounds) for heads in by_tenant.values() if r < len(heads)]
 
 
 def _next_bucket(n: int, buckets: Sequence[int]) -> int:

@@ -15,7 +15,13 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from contract import DEFAULT_HTTP_PORT, DEFAULT_ZENOH_ENDPOINT, STREAM_ID_PATTERN, Limits
+from contract import (
+    DEFAULT_HTTP_PORT,
+    DEFAULT_MIN_SCORE,
+    DEFAULT_ZENOH_ENDPOINT,
+    STREAM_ID_PATTERN,
+    Limits,
+)
 from contract.ros2 import check_topic, default_detections_topic, default_stream_id, node_name
 from server.auth import TokenFile
 
@@ -28,6 +34,7 @@ if TYPE_CHECKING:
     from server.zenoh_transport import ZenohConfig
 
 Endpoints = Annotated[tuple[str, ...], NoDecode]
+EgoBox = Annotated[tuple[float, ...] | None, NoDecode]
 
 
 def is_loopback(host: str) -> bool:
@@ -38,6 +45,17 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:  # a host name: it may resolve to anything
         return False
+
+
+def endpoint_is_loopback(endpoint: str) -> bool:
+    """Whether a zenoh endpoint (`tcp/127.0.0.1:7447`, `tls/[::1]:7447#...`) is reachable from this machine
+    only: a loopback host, or a unix socket."""
+    proto, _, rest = endpoint.partition("/")
+    if proto == "unixsock-stream":
+        return True
+    address = rest.split("?", 1)[0].split("#", 1)[0]
+    host = address.rsplit(":", 1)[0] if ":" in address else address
+    return is_loopback(host.strip("[]"))
 
 
 def default_worker_id() -> str:
@@ -63,6 +81,14 @@ class Settings(BaseSettings):
     http_body_timeout_s: float = Field(
         30.0, gt=0, description="A request's body must arrive within this of its headers (else it closes)."
     )
+    http_max_header_bytes: int = Field(
+        32768,
+        ge=1024,
+        description="A request's request line and headers together at most (bytes); beyond: 431, closed.",
+    )
+    http_max_headers: int = Field(
+        100, ge=8, description="Header fields in one request at most; beyond: 431 and the connection closed."
+    )
     # model
     checkpoint: Path | None = Field(
         None, description="Weights to serve [default: the embedded default model]."
@@ -74,6 +100,20 @@ class Settings(BaseSettings):
         True,
         description="Run the model's box refiner, where it has one (docs/model.md); false: the detector's "
         "boxes alone, 4-6 ms a sector less on a 2-core CPU.",
+    )
+    min_score: float = Field(
+        DEFAULT_MIN_SCORE,
+        ge=0.0,
+        le=1.0,
+        description="Replies keep the boxes scored at least this (0: every box); a sector's own min_score "
+        "overrides it. Chosen from the default model's precision/recall curve (docs/model-card.md).",
+    )
+    ego_footprint: EgoBox = Field(
+        None,
+        description="The ego vehicle around the sensor, x_min,x_max,y_min,y_max in metres (sensor frame, x "
+        "forward, y left): its points are dropped before the model and no box centred in it is returned; "
+        "'off': none [default: the checkpoint config's, -2.5,2.5,-1.6,1.6: a car with the sensor on its "
+        "roof; docs/model.md].",
     )
     device: str = Field("auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="auto, cpu, cuda or cuda:N.")
     threads: int = Field(0, ge=0, description="Torch CPU threads (0: torch's default).")
@@ -133,6 +173,19 @@ class Settings(BaseSettings):
     drain_timeout_s: float = Field(
         10.0, ge=0, description="On shutdown, keep answering queued sectors this long."
     )
+    # tenants (docs/security.md): a stream's tenant is its token's prefix, else its ID up to the first '.'
+    tenant_max_streams: int | None = Field(
+        None,
+        ge=1,
+        description="Live streams one tenant may hold (beyond: 503) [default: half of max_streams].",
+    )
+    tenant_queue_size: int | None = Field(
+        None,
+        ge=1,
+        description="Queued sectors each tenant is guaranteed (and the same fraction of max_queued_points): "
+        "a tenant alone may fill the queue, but a full queue makes room for a tenant within this by "
+        "refusing the newest sectors of one beyond it [default: half of queue_size].",
+    )
     # limits on a sector message
     max_body_bytes: int = Field(64 * 2**20, ge=1024, description="Largest sector message (bytes).")
     max_points: int = Field(1_000_000, ge=1, description="Points per sector at most.")
@@ -141,7 +194,11 @@ class Settings(BaseSettings):
     # zenoh
     zenoh_enabled: bool = Field(True, description="Serve over zenoh as well as HTTP.")
     zenoh_mode: Literal["peer", "client", "router"] = Field("peer", description="Zenoh session mode.")
-    zenoh_listen: Endpoints = Field((DEFAULT_ZENOH_ENDPOINT,), description="Zenoh endpoints to listen on.")
+    zenoh_listen: Endpoints = Field(
+        (DEFAULT_ZENOH_ENDPOINT,),
+        description="Zenoh endpoints to listen on (a client: none unless given); beyond loopback they need "
+        "--zenoh-config-file with an ACL, mTLS or user/password (deploy/zenoh/), or --insecure.",
+    )
     zenoh_connect: Endpoints = Field((), description="Zenoh endpoints to connect to (a router, other peers).")
     zenoh_config_file: Path | None = Field(None, description="A zenoh JSON5 config file (TLS, ACL, ...).")
     zenoh_multicast_scouting: bool = Field(False, description="Zenoh multicast scouting.")
@@ -241,6 +298,49 @@ class Settings(BaseSettings):
             )
         return self
 
+    @model_validator(mode="before")
+    @classmethod
+    def _a_zenoh_client_listens_nowhere(cls, data: Any) -> Any:
+        # unless asked: a second worker on the host would find the default endpoint taken
+        if isinstance(data, dict) and data.get("zenoh_mode") == "client" and "zenoh_listen" not in data:
+            return {**data, "zenoh_listen": ()}
+        return data
+
+    @model_validator(mode="after")
+    def _zenoh_guarded(self) -> Settings:
+        """zenoh follows HTTP's rule: reachable beyond loopback, or with --auth-tokens reachable at all, it
+        needs a config file (whose ACL, mTLS or user/password the transport checks when it reads it)."""
+        exposed = self.zenoh_exposed()
+        if exposed and not self.insecure and self.zenoh_config_file is None:
+            raise ValueError(
+                f"{exposed} zenoh without an ACL lets anyone who reaches it send into every stream and read "
+                "every stream's detections; give --zenoh-config-file FILE with an ACL, mTLS or user/password "
+                "(deploy/zenoh/), --zenoh-listen '' (and no --zenoh-connect) or --no-zenoh, or --insecure "
+                "(PHIM_INSECURE=1) to accept that"
+            )
+        if exposed and not self.insecure and self.zenoh_config_file and self.zenoh_config_file.is_file():
+            import zenoh  # the file's contents (a missing file fails where zenoh reads it, at start-up)
+
+            from server.zenoh_transport import require_guard
+
+            try:
+                conf = zenoh.Config.from_file(str(self.zenoh_config_file))
+            except zenoh.ZError as e:
+                raise ValueError(f"zenoh config file {self.zenoh_config_file}: {e}") from None
+            require_guard(conf, str(self.zenoh_config_file))
+        return self
+
+    def zenoh_exposed(self) -> str | None:
+        """Why this worker's zenoh needs a guard (None: it does not): listening beyond loopback, or reachable
+        at all while HTTP needs tokens (a session that listens and connects nowhere is reachable by none)."""
+        if not self.zenoh_enabled and self.ros2_points is None:
+            return None
+        wide = [e for e in self.zenoh_listen if not endpoint_is_loopback(e)]
+        if wide:
+            return f"zenoh_listen {','.join(wide)}: beyond loopback"
+        reached = bool(self.zenoh_listen or self.zenoh_connect or self.zenoh_multicast_scouting)
+        return "--auth-tokens: HTTP needs a token, but" if self.auth_tokens is not None and reached else None
+
     @model_validator(mode="after")
     def _live_view_only_on_loopback(self) -> Settings:
         # the Foxglove server has no authentication: --auth-tokens does not cover it
@@ -273,6 +373,27 @@ class Settings(BaseSettings):
     def _readable_tokens(cls, value: Path | None) -> Path | None:
         if value is not None:
             TokenFile(value)  # TokenFileError (a ValueError) names the file and line
+        return value
+
+    @field_validator("ego_footprint", mode="before")
+    @classmethod
+    def _split_footprint(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            if value.strip().lower() in ("off", "none"):
+                return ()
+            return tuple(v.strip() for v in value.split(",") if v.strip())
+        return value
+
+    @field_validator("ego_footprint")
+    @classmethod
+    def _footprint_box(cls, value: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if value is None or value == ():
+            return value
+        if len(value) != 4 or not (value[0] < value[1] and value[2] < value[3]):
+            raise ValueError(
+                f"{','.join(f'{v:g}' for v in value)}: expected x_min,x_max,y_min,y_max with x_min < x_max "
+                "and y_min < y_max (metres), or 'off'"
+            )
         return value
 
     @field_validator("zenoh_listen", "zenoh_connect", mode="before")
@@ -311,6 +432,9 @@ class Settings(BaseSettings):
             max_streams=self.max_streams,
             warmup_sectors=self.warmup_sectors,
             capacity_headroom=self.capacity_headroom,
+            min_score=self.min_score,
+            tenant_max_streams=self.tenant_max_streams,
+            tenant_queue_size=self.tenant_queue_size,
         )
 
     def live_view_config(self) -> LiveViewConfig:
@@ -351,4 +475,5 @@ class Settings(BaseSettings):
             multicast_scouting=self.zenoh_multicast_scouting,
             config_file=None if self.zenoh_config_file is None else str(self.zenoh_config_file),
             shared_keys=self.zenoh_shared_keys,
+            guard_required=self.zenoh_exposed() is not None and not self.insecure,
         )

@@ -9,6 +9,9 @@ States: `new_state` gives a new stream its state (a fixed-shape engine's device 
 makes it) and `drop_state` gives it back when the stream leaves the table (ended or evicted). A stream ended
 while its sector runs gives its state back when that sector has finished (`finished`), so the step in
 progress never reads a slot another stream has taken meanwhile.
+
+Tenants (`server.tenants`): each stream belongs to the tenant `tenant_of` gives its ID when it starts; a
+tenant holds at most `tenant_max_streams` live streams (beyond: OVERLOADED, naming the tenant).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import torch
 from contract import DetectionsReply, ErrorCode, SectorMessage, ServiceError
 from model.graph.slots import SlotsExhausted, SlotState
 from model.stream import StreamState
+from server.tenants import tenant_of_id
 
 
 @dataclass
@@ -53,6 +57,7 @@ class StreamEntry:
     running: bool = False  # a sector of this stream is in the current forward pass
     sectors: int = 0  # sectors run
     gaps: int = 0  # sectors missed in total
+    tenant: str = ""  # whose stream it is (server/tenants.py), fixed when it starts
 
     @property
     def idle(self) -> bool:
@@ -92,8 +97,13 @@ class StreamTable:
         on_evict: Callable[[str], None] | None = None,
         new_state: Callable[[], SlotState | None] = _no_state,
         drop_state: Callable[[StreamState | SlotState | None], None] = _nothing_to_drop,
+        tenant_of: Callable[[str], str] = tenant_of_id,
+        tenant_max_streams: int | None = None,  # None: max_streams (no cap per tenant)
     ):
         self.max_streams = max_streams
+        self.tenant_of = tenant_of
+        self.tenant_max_streams = max_streams if tenant_max_streams is None else tenant_max_streams
+        self.tenant_streams: dict[str, int] = {}  # live streams per tenant (tenants with none: absent)
         self.on_evict = on_evict
         self.idle_timeout_s = idle_timeout_s
         self.new_state = new_state
@@ -106,11 +116,17 @@ class StreamTable:
     def get(self, stream_id: str) -> StreamEntry | None:
         return self.entries.get(stream_id)
 
-    def admit(self, msg: SectorMessage, now: float) -> StreamEntry:
-        """The stream's entry (created if new) after the stale check; raises ServiceError."""
+    def tenant(self, stream_id: str) -> str:
+        """The tenant of a live stream (the one it started with), or of a new stream of this ID."""
+        entry = self.entries.get(stream_id)
+        return self.tenant_of(stream_id) if entry is None else entry.tenant
+
+    def admit(self, msg: SectorMessage, now: float, tenant: str | None = None) -> StreamEntry:
+        """The stream's entry (created if new, of `tenant`: by default `tenant_of` its ID) after the stale
+        check; raises ServiceError."""
         entry = self.entries.get(msg.stream_id)
         if entry is None:
-            entry = self._create(msg.stream_id, now)
+            entry = self._create(msg.stream_id, now, tenant or self.tenant_of(msg.stream_id))
         elif not msg.reset and entry.last_admitted is not None and msg.seq <= entry.last_admitted:
             raise ServiceError(
                 ErrorCode.STALE_SEQUENCE,
@@ -122,11 +138,15 @@ class StreamTable:
         entry.last_seen = now
         return entry
 
-    def _create(self, stream_id: str, now: float) -> StreamEntry:
+    def _create(self, stream_id: str, now: float, tenant: str) -> StreamEntry:
         if len(self.entries) >= self.max_streams:
             self.evict_idle(now)
         if len(self.entries) >= self.max_streams:
             raise self._full(stream_id)
+        if self.tenant_streams.get(tenant, 0) >= self.tenant_max_streams:
+            self.evict_idle(now)
+        if self.tenant_streams.get(tenant, 0) >= self.tenant_max_streams:
+            raise self._tenant_full(stream_id, tenant)
         try:
             state = self.new_state()
         except SlotsExhausted:  # sized by max_streams; a stream ended mid-step gives its slot back after it
@@ -138,9 +158,29 @@ class StreamTable:
                 "stream_id",
                 retry_after_s=0.1,
             ) from None
-        entry = StreamEntry(stream_id=stream_id, created_unix=time.time(), last_seen=now, state=state)
+        entry = StreamEntry(stream_id, time.time(), now, state, tenant=tenant)
         self.entries[stream_id] = entry
+        self.tenant_streams[tenant] = self.tenant_streams.get(tenant, 0) + 1
         return entry
+
+    def _pop(self, stream_id: str) -> StreamEntry:
+        """Take a live stream out of the table (its tenant holds one stream less)."""
+        entry = self.entries.pop(stream_id)
+        left = self.tenant_streams.pop(entry.tenant) - 1
+        if left:
+            self.tenant_streams[entry.tenant] = left
+        return entry
+
+    def _tenant_full(self, stream_id: str, tenant: str) -> ServiceError:
+        return ServiceError(
+            ErrorCode.OVERLOADED,
+            f"stream_id: cannot start stream {stream_id!r}: its tenant {tenant!r} holds "
+            f"{self.tenant_streams[tenant]} live streams, the limit per tenant (tenant_max_streams="
+            f"{self.tenant_max_streams}); end one of its streams or retry once its idle streams are evicted "
+            f"(after {self.idle_timeout_s:g} s without sectors)",
+            "stream_id",
+            retry_after_s=self.idle_timeout_s,
+        )
 
     def _full(self, stream_id: str) -> ServiceError:
         return ServiceError(
@@ -153,9 +193,9 @@ class StreamTable:
         )
 
     def end(self, stream_id: str) -> StreamEntry:
-        entry = self.entries.pop(stream_id, None)
-        if entry is None:
+        if stream_id not in self.entries:
             raise self.unknown(stream_id)
+        entry = self._pop(stream_id)
         if not entry.running:  # else `finished` gives its state back
             self.drop_state(entry.state)
         return entry
@@ -180,7 +220,7 @@ class StreamTable:
         """Drop streams without queued or running sectors that were idle longer than the timeout."""
         old = [sid for sid, e in self.entries.items() if e.idle and now - e.last_seen > self.idle_timeout_s]
         for sid in old:
-            self.drop_state(self.entries.pop(sid).state)
+            self.drop_state(self._pop(sid).state)
             if self.on_evict is not None:
                 self.on_evict(sid)
         return old

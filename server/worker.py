@@ -28,8 +28,9 @@ from server.admission import Backlog, sector_points
 from server.device_states import DetectorStates
 from server.metrics import OK, Metrics
 from server.outcomes import sector_answer
-from server.scheduler import Wait, batch_fill, decide
+from server.scheduler import Wait, batch_fill, decide, fair_order
 from server.streams import Pending, StreamEntry, StreamTable
+from server.tenants import TenantQueue, half, plan_push_out, pushed_out_error, queued_of, tenant_of_id
 from server.warmup import freeze_heap, model_info, warm_up
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,15 @@ class WorkerConfig:
     max_streams: int = 256
     warmup_sectors: int = 5
     capacity_headroom: float = 2.0  # fixed/graph: capacities over the warm-up turn's
+    min_score: float = 0.0  # replies keep the boxes scored at least this, unless a sector says otherwise
+    tenant_max_streams: int | None = None  # live streams per tenant (server/tenants.py); None: half
+    tenant_queue_size: int | None = None  # queued sectors a tenant is guaranteed; None: half of queue_size
+
+    def tenant_shares(self) -> tuple[int, int, int]:
+        """(streams, queued sectors, queued points) per tenant; the points share is the sectors' fraction."""
+        streams = self.tenant_max_streams or half(self.max_streams)
+        sectors = min(self.queue_size, self.tenant_queue_size or half(self.queue_size))
+        return streams, sectors, max(1, self.max_queued_points * sectors // self.queue_size)
 
 
 class Worker:
@@ -67,6 +77,7 @@ class Worker:
         cfg: WorkerConfig = WorkerConfig(),
         metrics: Metrics | None = None,
         observer: Observer | None = None,
+        tenant_of: Callable[[str], str] = tenant_of_id,
     ):
         self._load = load
         self._observer = observer  # the live view (server/live_view.py); None: nothing watches
@@ -77,11 +88,19 @@ class Worker:
         self.metrics = metrics or Metrics()
         self._states = DetectorStates(cfg.max_streams)
         st = self._states
+        tenant_streams, tenant_sectors, tenant_points = cfg.tenant_shares()
         self.table = StreamTable(
-            cfg.max_streams, cfg.idle_timeout_s, self._evicted, st.new_state, st.drop_state
+            cfg.max_streams,
+            cfg.idle_timeout_s,
+            self._evicted,
+            st.new_state,
+            st.drop_state,
+            tenant_of,
+            tenant_streams,
         )
         self._cond = threading.Condition()
         self._backlog = Backlog(cfg.queue_size, cfg.max_queued_points)  # sectors queued (not running)
+        self._tenants = TenantQueue(tenant_sectors, tenant_points)  # the same, per tenant
         self._ready = False
         self._closing = False
         self._drain_until = math.inf
@@ -136,8 +155,9 @@ class Worker:
         try:
             points = sector_points(msg, self.det.cfg)
             with self._cond:
-                self._admit(msg, points, fut, transport, now)
+                pushed_out = self._admit(msg, points, fut, transport, now)
                 self._cond.notify_all()
+            self._settle(pushed_out)
         except ServiceError as e:
             self._settle([(fut, transport, e)])
         except Exception as e:  # a bug must still give this sector its one answer
@@ -172,7 +192,7 @@ class Worker:
         return self._det
 
     def model_info(self) -> dict[str, Any]:
-        return model_info(self.det, self._source, self.worker_id)
+        return {**model_info(self.det, self._source, self.worker_id), "min_score": self.cfg.min_score}
 
     def close(self, drain_timeout_s: float = 10.0, forward_grace_s: float = 30.0) -> None:
         """Stop taking sectors and answer every queued one: run while the drain timeout lasts, NOT_READY after
@@ -203,26 +223,55 @@ class Worker:
         fut: Future[DetectionsReply],
         transport: str,
         now: float,
-    ) -> None:
-        """Under the lock: check readiness, queue room and sequence, then queue the sector."""
+    ) -> list[Answer]:
+        """Under the lock: check readiness, queue room and sequence, then queue the sector. A full queue
+        takes the sector of a tenant within its share by pushing out sectors of tenants beyond theirs
+        (server/tenants.py): their answers (OVERLOADED) are returned, to be settled outside the lock."""
         if self._closing or not self._ready:
             raise ServiceError(
                 ErrorCode.NOT_READY, f"worker {self.worker_id}: {self.status}; not taking sectors"
             )
+        n = int(points.shape[0])
         retry = max(0.01, math.ceil(self._backlog.sectors / self.cfg.max_batch) * self._batch_s)
-        self._backlog.check(int(points.shape[0]), retry)
-        entry = self.table.admit(msg, now)
-        entry.pending.append(
-            Pending(msg, points, fut, transport, entry, now, now + self.cfg.deadline_ms / 1e3)
-        )
-        self._backlog.add(int(points.shape[0]))
+        tenant = self.table.tenant(msg.stream_id)
+        room: list[Pending] | None = []
+        try:
+            self._backlog.check(n, retry)
+        except ServiceError:
+            room = plan_push_out(
+                self._tenants, self._backlog, tenant, n, lambda t: queued_of(self.table.entries.values(), t)
+            )
+            if room is None:
+                raise
+        entry = self.table.admit(msg, now, tenant)
+        pushed_out = [self._push_out(p, retry) for p in room]
+        deadline = now + self.cfg.deadline_ms / 1e3
+        entry.pending.append(Pending(msg, points, fut, transport, entry, now, deadline))
+        self._backlog.add(n)
+        self._tenants.add(tenant, n)
+        return pushed_out
+
+    def _push_out(self, p: Pending, retry_s: float) -> Answer:
+        """Under the lock: take a queued sector (its stream's newest) out to make room for another's."""
+        error = pushed_out_error(p.entry.tenant, self._tenants, self.cfg.queue_size, retry_s)
+        assert p.entry.pending[-1] is p, "only a stream's newest sector is pushed out"
+        p.entry.pending.pop()
+        self._unqueue([p])
+        p.entry.forget_failed()
+        return p.future, p.transport, error
+
+    def _unqueue(self, pending: list[Pending]) -> None:
+        """Under the lock: these sectors leave the queue (they run or are answered)."""
+        self._backlog.remove(int(p.points.shape[0]) for p in pending)
+        for p in pending:
+            self._tenants.remove(p.entry.tenant, int(p.points.shape[0]))
 
     def _drop_pending(self, entry: StreamEntry, code: ErrorCode, why: str) -> list[Answer]:
         failed: list[Answer] = [
             (p.future, p.transport, ServiceError(code, f"{why} before seq {p.msg.seq} ran"))
             for p in entry.pending
         ]
-        self._backlog.remove(int(p.points.shape[0]) for p in entry.pending)
+        self._unqueue(list(entry.pending))
         entry.pending.clear()
         self._cond.notify_all()
         entry.forget_failed()
@@ -280,7 +329,7 @@ class Worker:
         heads = [e for e in self.table.entries.values() if e.pending]
         if not heads:
             return None if self._closing else max(0.0, self._next_evict - now)
-        heads.sort(key=lambda e: e.pending[0].submitted)
+        heads.sort(key=lambda e: e.pending[0].submitted)  # oldest first; the batch: round-robin by tenant
         waited = now - heads[0].pending[0].submitted
         cfg = self.cfg
         due = decide(
@@ -294,10 +343,10 @@ class Worker:
         )
         if isinstance(due, Wait):
             return due.seconds
-        batch = [e.pending.popleft() for e in heads[: due.sectors]]
+        batch = [heads[i].pending.popleft() for i in fair_order([e.tenant for e in heads])[: due.sectors]]
         for p in batch:
             p.entry.running = True
-        self._backlog.remove(int(p.points.shape[0]) for p in batch)
+        self._unqueue(batch)
         self._cond.notify_all()  # close() waits for the queue to empty
         return batch
 
@@ -309,7 +358,7 @@ class Worker:
             before = len(failed)
             while entry.pending and (draining_over or entry.pending[0].deadline < now):
                 p = entry.pending.popleft()
-                self._backlog.remove([int(p.points.shape[0])])
+                self._unqueue([p])
                 failed.append((p.future, p.transport, self._expired_error(p, now, draining_over)))
             if len(failed) > before:
                 entry.forget_failed()
@@ -337,11 +386,11 @@ class Worker:
         new_states: list[Any] = [None] * len(batch)  # None: the stream's state stays as it was
         try:  # anything failing here fails this batch only: the loop and every stream's state go on
             states = [s if s is not None else self.det.init_state() for s in prior]
-            names = self.det.cfg.head.class_names
+            names, least = self.det.cfg.head.class_names, self.cfg.min_score
             results, stepped = self.det.step([p.points for p in batch], states)
             model_s = time.monotonic() - t0
             outcomes: list[Answer] = [
-                (p.future, p.transport, sector_answer(p, r, g, c, t0, model_s, names, self.worker_id))
+                (p.future, p.transport, sector_answer(p, r, g, c, t0, model_s, names, self.worker_id, least))
                 for p, r, g, c in zip(batch, results, gaps, colds, strict=True)
             ]
             new_states = [

@@ -32,6 +32,7 @@ from contract import (
     DEFAULT_KEY_PREFIX,
     DEFAULT_ZENOH_ENDPOINT,
     MSGPACK,
+    PROBE_CHUNK,
     STREAM_ID_RE,
     DetectionsReply,
     ErrorCode,
@@ -67,13 +68,41 @@ class ZenohConfig:
     # also answer the shared keys `{prefix}/streams/{id}/...` (one worker alone); off in a fleet, where each
     # worker answers only its own, `{prefix}/streams/{id}/workers/{worker_id}/...` (clients: --workers auto)
     shared_keys: bool = True
+    # the session is reachable beyond loopback (or HTTP needs tokens) without --insecure: the config file
+    # must guard it (`guards`); the server refuses to start otherwise (server/settings.py)
+    guard_required: bool = False
+
+
+def guards(conf: zenoh.Config) -> list[str]:
+    """What in a zenoh config checks who connects: an ACL, mTLS, user/password (none: anyone may)."""
+
+    def value(key: str) -> object:
+        return json.loads(conf.get_json(key))
+
+    found = ["ACL"] if value("access_control/enabled") is True else []
+    found += ["mTLS"] if value("transport/link/tls/enable_mtls") is True else []
+    usrpwd = value("transport/auth/usrpwd/dictionary_file") or value("transport/auth/usrpwd/user")
+    return found + (["user/password"] if usrpwd else [])
+
+
+def require_guard(conf: zenoh.Config, config_file: str | None) -> None:
+    """ValueError unless the config guards the session (`guards`)."""
+    if not guards(conf):
+        raise ValueError(
+            f"zenoh config file {config_file}: no ACL (access_control.enabled), mTLS (transport.link.tls"
+            ".enable_mtls) or user/password (transport.auth.usrpwd), so anyone who reaches the session may "
+            "send into every stream: add one (deploy/zenoh/ has samples), or give --insecure"
+        )
 
 
 def build_config(cfg: ZenohConfig) -> zenoh.Config:
-    """A zenoh.Config: the config file (if any), then mode, endpoints and multicast scouting from `cfg`."""
+    """A zenoh.Config: the config file (if any), then mode, endpoints and multicast scouting from `cfg`;
+    ValueError when `cfg.guard_required` and the file guards nothing."""
     if cfg.mode not in ("peer", "client", "router"):
         raise ValueError(f"zenoh mode: {cfg.mode!r}; expected 'peer', 'client' or 'router'")
     conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
+    if cfg.guard_required:
+        require_guard(conf, cfg.config_file)
     conf.insert_json5("mode", json.dumps(cfg.mode))
     conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
     conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
@@ -275,6 +304,10 @@ class ZenohTransport:
     def _accept(self, key: str, payload: zenoh.ZBytes | None, query: zenoh.Query | None) -> None:
         """Decode and submit one sector; whatever happens, its answer ends up in the outbox once."""
         job = _Job(self.keys.stream_id_of(key), query)
+        if job.key_id == PROBE_CHUNK and query is not None:  # a client checking this worker's token: an
+            why = ServiceError(ErrorCode.BAD_REQUEST, f"worker {self.worker_id}: a probe, not a sector")
+            self._outbox.put((job, job.error(why)))  # answer from this session, counted nowhere
+            return
         if STREAM_ID_RE.fullmatch(job.key_id) and len(job.key_id) <= self.limits.max_string_len:
             job.stream_id = job.key_id
         try:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -30,6 +31,8 @@ from server.default_model import DEFAULT_SEED, load_default_model
 from server.settings import Settings
 
 FIELDS = ("x", "y", "z", "intensity")
+START_TIMEOUT_S = 600.0  # a server's start and warm-up, bounded: a busy 2-core machine took over 60 s
+LATE_S = 30.0  # slack past a configured timeout before a bounded wait fails: a busy machine is late
 
 
 def default_detector() -> StreamingDetector:
@@ -146,7 +149,10 @@ class RunningServer:
 
 
 def make_settings(**overrides: Any) -> Settings:
-    base: dict[str, Any] = dict(port=0, zenoh_enabled=False, warmup_sectors=1, worker_id="test-worker")
+    """Test settings; replies keep every box (min_score 0), as `run_direct` gives them."""
+    base: dict[str, Any] = dict(
+        port=0, zenoh_enabled=False, warmup_sectors=1, worker_id="test-worker", min_score=0.0
+    )
     return Settings(**{**base, **overrides})
 
 
@@ -161,7 +167,8 @@ def serve(det: Detector | None, wait_ready: bool = True, **overrides: Any) -> It
     thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
     thread.start()
     try:
-        for _ in range(600):
+        started = time.monotonic()  # bounded waits, long enough for a busy machine (they end when done)
+        while time.monotonic() - started < START_TIMEOUT_S:
             if server.started or not thread.is_alive():
                 break
             threading.Event().wait(0.05)
@@ -170,7 +177,7 @@ def serve(det: Detector | None, wait_ready: bool = True, **overrides: Any) -> It
         scheme = "https" if settings.tls_cert else "http"
         running = RunningServer(f"{scheme}://127.0.0.1:{port}", server, thread)
         if wait_ready:
-            assert app.state.services.worker.wait_ready(60), app.state.services.worker.status
+            assert app.state.services.worker.wait_ready(START_TIMEOUT_S), app.state.services.worker.status
         yield running
     finally:
         server.should_exit = True

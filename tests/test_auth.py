@@ -81,7 +81,8 @@ def test_binding_beyond_loopback_needs_tokens_or_insecure(tmp_path: Path):
     assert Settings(host="0.0.0.0", insecure=True).insecure
     path = tmp_path / "tokens.jsonl"
     add_token(path, "a.")
-    assert Settings(host="0.0.0.0", auth_tokens=path).auth_tokens == path
+    # (zenoh off: with tokens, zenoh needs its own guard, tests/test_zenoh_guard.py)
+    assert Settings(host="0.0.0.0", auth_tokens=path, zenoh_enabled=False).auth_tokens == path
     path.write_text("{broken\n")
     with pytest.raises(ValidationError, match=r"tokens\.jsonl:1"):
         Settings(auth_tokens=path)
@@ -162,3 +163,64 @@ def test_a_server_with_tokens(tmp_path: Path):
     with serve(default_detector(), auth_tokens=path, public_metrics=True) as s:
         assert httpx.get(f"{s.url}/metrics").status_code == 200
         assert httpx.get(f"{s.url}/v1/model").status_code == 401
+
+
+HUGE_NUMBER = json.dumps({"sha256": "0" * 64, "prefix": "a."})[:-1] + ', "admin": ' + "1" * 5000 + "}"
+DEEP = "[" * 100_000 + "]" * 100_000
+
+
+@pytest.mark.parametrize("line", [HUGE_NUMBER, DEEP], ids=["5000-digit number", "nested 100,000 deep"])
+def test_a_line_no_json_parser_takes_keeps_the_last_table_and_logs_once(tmp_path, caplog, line):
+    """Before: the parser's ValueError (integer over 4,300 digits) or RecursionError escaped, so every
+    authenticated request answered 500. Now the file is refused like any bad file, the line named."""
+    with pytest.raises(TokenFileError, match=r"f\.jsonl:1: "):
+        parse_tokens(line, "f.jsonl")
+    path = tmp_path / "tokens.jsonl"
+    token = add_token(path, "a.")
+    table = TokenFile(path)
+    path.write_text(path.read_text() + line + "\n")
+    with caplog.at_level("ERROR", logger="server.auth"):
+        assert all(table.grant(token) is not None for _ in range(5))  # the last good table
+    assert [r.levelname for r in caplog.records] == ["ERROR"]  # once, not once per request
+    assert "tokens.jsonl:2" in caplog.records[0].getMessage()
+
+
+def test_deleting_the_token_file_revokes_every_token_until_it_is_back(tmp_path, caplog):
+    """Before: the deleted file's tokens kept working, and every request logged an ERROR. Fail closed."""
+    path = tmp_path / "tokens.jsonl"
+    token = add_token(path, "a.")
+    table = TokenFile(path)
+    saved = path.read_text()
+    path.unlink()
+    with caplog.at_level("ERROR", logger="server.auth"):
+        assert all(table.grant(token) is None for _ in range(5))
+    assert len(caplog.records) == 1 and "every token is refused" in caplog.records[0].getMessage()
+    assert table.tenant_of("a.car") == "a."  # streams still have a tenant: by their ID
+    path.write_text(saved)
+    assert table.grant(token) is not None  # back: read again
+
+
+def test_the_api_description_two_authorization_headers_and_the_token_file_over_http(tmp_path: Path):
+    """With tokens, /openapi.json needs one like every route but /health (before: open, with /docs and
+    /redoc); two Authorization headers are refused (before: the first one counted); a bad token file keeps
+    the last table (before: 500 for every authenticated request) and a deleted one refuses every token."""
+    path = tmp_path / "tokens.jsonl"
+    a = add_token(path, "fleet-a.")
+    points = sectors()
+    with serve(default_detector(), auth_tokens=path) as s:
+        assert httpx.get(f"{s.url}/openapi.json").status_code == 401
+        doc = httpx.get(f"{s.url}/openapi.json", headers={"Authorization": f"Bearer {a}"})
+        assert doc.status_code == 200 and "/v1/streams/{stream_id}/sectors" in doc.json()["paths"]
+        assert [httpx.get(f"{s.url}/{p}").status_code for p in ("docs", "redoc")] == [404, 404]
+        twice = [("Authorization", f"Bearer {a}"), ("Authorization", "Bearer phim_other")]
+        r = httpx.get(f"{s.url}/v1/model", headers=twice)
+        assert r.status_code == 401 and "2 headers; expected exactly one" in r.json()["message"]
+        assert _post(s.url, "fleet-a.car", 0, points[0], a).status_code == 200
+        path.write_text(path.read_text() + HUGE_NUMBER + "\n")
+        assert _post(s.url, "fleet-a.car", 1, points[1], a).status_code == 200  # the last good table
+        path.unlink()
+        r = _post(s.url, "fleet-a.car", 2, points[2], a)
+        assert r.status_code == 401 and _code(r) == "unauthorized"
+    with serve(default_detector()) as s:  # without tokens the description is open, as FastAPI serves it
+        assert httpx.get(f"{s.url}/openapi.json").status_code == 200
+        assert httpx.get(f"{s.url}/docs").status_code == 200

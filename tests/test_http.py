@@ -14,6 +14,8 @@ import msgpack
 import numpy as np
 import pytest
 from server_helpers import (
+    LATE_S,
+    START_TIMEOUT_S,
     RunningServer,
     StepGate,
     assert_same_boxes,
@@ -350,10 +352,12 @@ def test_a_client_leaving_while_its_sector_runs_leaves_the_stream_consistent(det
 def test_connections_that_stall_are_closed_and_a_slow_honest_one_is_served(det, caplog):
     """Read deadlines (server/http_protocol.py): a connection that sends nothing, half its headers or half
     its body is closed once its deadline passes (before: held open for good); a body sent in slow chunks
-    within the deadline is served. Nothing is logged as an error."""
+    within the deadline is served. Nothing is logged as an error. Behaviour, not speed: a stall is closed
+    not before its deadline and within a generous bound; the slow body pauses a tenth of its deadline."""
     import socket
 
-    with serve(det, http_header_timeout_s=0.5, http_body_timeout_s=0.8) as s:
+    header_s, body_s = 0.5, 4.0
+    with serve(det, http_header_timeout_s=header_s, http_body_timeout_s=body_s) as s:
         host, port = s.url.removeprefix("http://").split(":")
         head = "POST /v1/streams/slow/sectors HTTP/1.1\r\nHost: x\r\nContent-Type: application/msgpack\r\n"
         body = encode_sector(sector_msg("slow", 0, np.zeros((10, 4), np.float32)))
@@ -364,17 +368,53 @@ def test_connections_that_stall_are_closed_and_a_slow_honest_one_is_served(det, 
         }
         with caplog.at_level("INFO"):
             for name, sent in stalls.items():
-                with socket.create_connection((host, int(port)), timeout=5) as sock:
+                t0 = time.monotonic()  # before the connection opens: no deadline can start earlier
+                with socket.create_connection((host, int(port)), timeout=body_s + 2 * LATE_S) as sock:
                     sock.sendall(sent)
-                    t0 = time.monotonic()
                     assert sock.recv(1024) == b"", name  # closed by the server, no reply
-                    assert 0.4 < time.monotonic() - t0 < 3, name
-            with socket.create_connection((host, int(port)), timeout=5) as sock:
+                    waited = time.monotonic() - t0
+                    assert 0.8 * header_s < waited < body_s + LATE_S, (
+                        name,
+                        waited,
+                    )  # not before its deadline
+            with socket.create_connection((host, int(port)), timeout=START_TIMEOUT_S) as sock:
                 sock.sendall(f"{head}Content-Length: {len(body)}\r\n\r\n".encode())
                 for k in range(0, len(body), len(body) // 3 + 1):
-                    time.sleep(0.15)
+                    time.sleep(body_s / 10)
                     sock.sendall(body[k : k + len(body) // 3 + 1])
                 reply = sock.recv(65536)
         assert reply.startswith(b"HTTP/1.1 200"), reply[:200]
     assert not [r for r in caplog.records if r.levelno >= 40]
     assert sum("closing a connection" in r.getMessage() for r in caplog.records) == 3
+
+
+def test_a_request_head_over_its_limits_is_431_and_the_server_keeps_serving(det, caplog):
+    """httptools buffers a header of any size and any number of headers (before: 32 connections growing a
+    header for 10 s took 370 MB, never given back). A head over `--http-max-header-bytes` or with more than
+    `--http-max-headers` fields is answered 431 and closed, however it arrives; the server serves on."""
+    import socket
+
+    with serve(det, http_max_header_bytes=4096, http_max_headers=20) as s:
+        host, port = s.url.removeprefix("http://").split(":")
+        start = b"GET /v1/model HTTP/1.1\r\nHost: x\r\n"
+        heads = {
+            "one huge header, in pieces": [start + b"X-Big: "] + [b"a" * 1000] * 5,  # over at the last
+            "a huge request line": [b"GET /" + b"a" * 5000],
+            "a huge head, whole in one piece": [start + b"X-Big: " + b"a" * 6000 + b"\r\n\r\n"],
+            "many headers at once": [start + b"".join(b"X-%d: 1\r\n" % i for i in range(30)) + b"\r\n"],
+        }
+        with caplog.at_level("INFO"):
+            for name, pieces in heads.items():
+                with socket.create_connection((host, int(port)), timeout=10) as sock:
+                    reply = b""
+                    for piece in pieces:  # each head crosses its limit with its last piece
+                        sock.sendall(piece)
+                    while chunk := sock.recv(65536):  # read to the server's close
+                        reply += chunk
+                assert reply.startswith(b"HTTP/1.1 431 "), (name, reply[:200])
+                assert b"the limit" in reply, name
+        # within the limits: served, on the same kind of connection, after all that
+        ok = httpx.get(f"{s.url}/v1/model", headers={f"X-{i}": "1" * 100 for i in range(15)}, timeout=10)
+        assert ok.status_code == 200
+    assert sum("refusing a request" in r.getMessage() for r in caplog.records) == 4
+    assert not [r for r in caplog.records if r.levelno >= 40]

@@ -62,13 +62,17 @@ def test_openapi_publishes_the_sector_route(doc):
         and "Retry-After" in op["responses"]["503"]["headers"]
     )
     schemas = doc["components"]["schemas"]
-    data = schemas["WireArray"]["properties"]["data"]
-    assert data["contentEncoding"] == "base64" and "msgpack bin" in data["description"]
+    # per media type: bin in msgpack (the sector's points, the reply's arrays), base64 in JSON
+    assert schemas["WirePoints"]["properties"]["data"]["format"] == "binary"
+    assert schemas["WireArray"]["properties"]["data"]["format"] == "binary"
+    assert schemas["JsonPoints"]["properties"]["data"]["contentEncoding"] == "base64"
     assert (
         op["parameters"][0]["schema"]["pattern"]
         == schemas["WireSector"]["properties"]["stream_id"]["pattern"]
+        == schemas["JsonSector"]["properties"]["stream_id"]["pattern"]
     )
-    for name in ("WireSector", "WireArray", "WireDetections", "JsonDetections", "WireError", "WireTimings"):
+    names = ["WireSector", "JsonSector", "WirePoints", "JsonPoints", "WireArray", "WireDetections"]
+    for name in [*names, "JsonDetections", "WireError", "WireTimings"]:
         jsonschema.Draft202012Validator.check_schema(schemas[name])
     assert "/v1/model" in doc["paths"]  # FastAPI's own routes are still there
 

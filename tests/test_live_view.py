@@ -5,6 +5,7 @@ messages decoded, and that the view never holds serving up."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import struct
@@ -20,7 +21,7 @@ import pytest
 import websockets
 from foxglove_helpers import decode, descriptors
 from pydantic import ValidationError
-from server_helpers import CONTROL, default_detector, sector_msg, serve
+from server_helpers import CONTROL, START_TIMEOUT_S, default_detector, sector_msg, serve
 
 from clients.bench.server import free_port
 from contract import MSGPACK, DetectionsReply, decode_response, encode_sector
@@ -31,8 +32,8 @@ from server.worker import Worker, WorkerConfig
 
 SUBPROTOCOL = "foxglove.sdk.v1"  # the only one foxglove-sdk's server accepts (0.30)
 MESSAGE_DATA = 0x01  # binary opcode: u8 opcode, u32 subscription id, u64 log time (little-endian), payload
-WAIT_S = 30.0
-SECOND_SECTOR_NS = 1000  # sector_msg's timestamp for seq 1
+WAIT_S = START_TIMEOUT_S  # bounded, generous: a busy machine is slow, and each wait ends once met
+SECTOR_NS = 1000  # sector_msg's timestamp for seq k: k * SECTOR_NS
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +44,8 @@ def det() -> StreamingDetector:
 def post(url: str, stream: str, seq: int) -> DetectionsReply:
     """The CONTROL sector (a sector with boxes) as `stream`'s sector `seq`, over HTTP."""
     body = encode_sector(sector_msg(stream, seq, CONTROL))
-    r = httpx.post(f"{url}/v1/streams/{stream}/sectors", content=body, headers={"Content-Type": MSGPACK})
+    headers = {"Content-Type": MSGPACK}
+    r = httpx.post(f"{url}/v1/streams/{stream}/sectors", content=body, headers=headers, timeout=WAIT_S)
     reply = decode_response(r.content)
     assert r.status_code == 200 and isinstance(reply, DetectionsReply), reply
     return reply
@@ -100,8 +102,9 @@ class FoxgloveClient:
 
 
 async def watch(url: str, port: int) -> tuple[DetectionsReply, dict[int, bytes], dict[str, Any], str]:
-    """Connect, see a stream's channels come with its first sector, subscribe, send a second sector and
-    take one message per subscription -> (second reply, payload per subscription, channels, server name)."""
+    """Connect, see a stream's channels come with its first sector, subscribe, send sectors until one is
+    seen on both subscriptions -> (its reply, payload per subscription, channels, server name). The protocol
+    does not acknowledge a subscription: the sectors sent before the server has it are not drawn for us."""
     async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
         assert ws.subprotocol == SUBPROTOCOL
         client = FoxgloveClient(ws)
@@ -112,15 +115,20 @@ async def watch(url: str, port: int) -> tuple[DetectionsReply, dict[int, bytes],
         await client.advertised(points, boxes)
         await client.subscribe(7, boxes)
         await client.subscribe(8, points)
-        await asyncio.sleep(0.5)  # the protocol does not acknowledge a subscription
-        reply = await asyncio.to_thread(post, url, "car-1", 1)
-        got: dict[int, bytes] = {}
         by_subscription = {7: client.channels[boxes], 8: client.channels[points]}
-        while len(got) < 2:
-            subscription, payload = await client.message()
-            if sensor_time_ns(decoded(by_subscription[subscription], payload)) == SECOND_SECTOR_NS:
-                got[subscription] = payload  # not sector 0's, which a busy view may draw after subscribing
-        return reply, got, client.channels, info["name"]
+        replies: dict[int, DetectionsReply] = {}
+        seen: dict[int, dict[int, bytes]] = {}  # seq -> subscription -> payload
+        deadline = time.monotonic() + WAIT_S
+        while not any(len(got) == 2 for got in seen.values()):
+            assert time.monotonic() < deadline, f"no sector seen on both subscriptions: {sorted(seen)}"
+            replies[len(replies) + 1] = await asyncio.to_thread(post, url, "car-1", len(replies) + 1)
+            with contextlib.suppress(TimeoutError):  # what came in a second; late ones are kept too
+                while True:
+                    subscription, payload = await asyncio.wait_for(client.message(), 1.0)
+                    seq = sensor_time_ns(decoded(by_subscription[subscription], payload)) // SECTOR_NS
+                    seen.setdefault(seq, {})[subscription] = payload  # sector 0's, if any, is never asked
+        seq = min(k for k, got in seen.items() if len(got) == 2)
+        return replies[seq], seen[seq], client.channels, info["name"]
 
 
 def test_a_stream_is_seen_live(det):
@@ -179,13 +187,14 @@ def test_only_foxglove_port_opens_a_port(det):
 
 
 def test_a_stuck_view_never_holds_serving_up(det, monkeypatch):
-    """The drawing thread blocks on its first sector: every sector is still answered at once, the view's
-    queue fills (8) and the rest are dropped and counted."""
-    gate, drawing = threading.Event(), threading.Event()
+    """The drawing thread blocks on its first sector: every sector is still answered while it is stuck (not
+    after it), the view's queue fills (8) and the rest are dropped and counted."""
+    gate, drawing, drawn = threading.Event(), threading.Event(), threading.Event()
 
     def stuck(self: LiveView, msg: Any, reply: Any) -> None:
         drawing.set()
         gate.wait(WAIT_S)
+        drawn.set()
 
     monkeypatch.setattr(LiveView, "_draw", stuck)
     sent = 14
@@ -194,9 +203,8 @@ def test_a_stuck_view_never_holds_serving_up(det, monkeypatch):
             post(s.url, "car-1", 0)
             assert drawing.wait(WAIT_S)
             for seq in range(1, sent):
-                t0 = time.monotonic()
                 post(s.url, "car-1", seq)
-                assert time.monotonic() - t0 < 5.0
+            assert not drawn.is_set()  # all answered while the drawer is still stuck: nothing waited on it
             metrics = httpx.get(f"{s.url}/metrics").text
         finally:
             gate.set()

@@ -5,6 +5,7 @@ with and without it (`--no-refiner`)."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import subprocess
 import sys
@@ -14,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 import torch
-from conftest import kitti_scan
+from conftest import REPO, kitti_scan
 from server_helpers import assert_same_boxes, run_direct, sector_msg, serve
 from test_streaming import assert_same_detections
 
@@ -81,6 +82,56 @@ def test_no_boxes_or_no_points(lookup):
         local, counts = lookup(p, b, CFG)
         assert local.shape == (b.shape[0], CFG.points, 3) and counts.shape == (b.shape[0],)
         assert int(counts.sum()) == 0
+
+
+# Issue 51's killer sector, kernel level, in a child process (a crash fails the test instead of killing
+# pytest): a lone cluster of 300 points and one more far away on x (or y), a finite float32 whose 1 m cell
+# index overflowed int64: the compiled bounds check was folded away and the kernel wrote outside its
+# buffers. Each case is named on stdout before it runs; its counts from each lookup follow as JSON.
+_FAR_POINT = """
+import json, sys
+import numpy as np, torch
+from model.config import RefineConfig
+from model.layers.refine import box_points, box_points_reference, box_points_torch
+torch.set_num_threads(1)
+g = np.random.default_rng(0)
+cluster = np.stack([g.uniform(20, 40, 300), g.uniform(-10, -2, 300), g.uniform(-1.5, 1, 300)], 1)
+two = torch.tensor([[30.0, -6, 0, 4, 2, 1.5, 0.3], [25.0, -3, -0.5, 0.8, 0.8, 1.7, -1.0]])
+cfg = RefineConfig(points=16)
+for far in (-1e30, 1e30, 1e19, -1e19, -3.4e38, 3.4028235e38):
+    for axis in (0, 1):
+        for boxes in (two[:1], two):
+            print("case", far, axis, len(boxes), flush=True)
+            point = [30.0, -5.0, 0.0]
+            point[axis] = far
+            points = torch.from_numpy(np.concatenate([cluster, [point]]).astype(np.float32))
+            out = {}
+            for name, lookup in (("kernel", box_points), ("torch", box_points_torch)):
+                for _ in range(20):  # the corruption did not always crash the first call
+                    local, counts = lookup(points, boxes, cfg)
+                out[name] = (counts.tolist(), local.tolist())
+            local, counts = box_points_reference(points, boxes, cfg)
+            out["plain"] = (counts.tolist(), local.tolist())
+            print(json.dumps(out), flush=True)
+"""
+
+
+def test_a_point_whose_cell_index_overflows_int64_is_looked_up_without_a_crash():
+    """The kernel (and its tensor twin) bucket a point by its cell only after checking it against the grid's
+    bounds as a float: the far point is in no box, the cluster's points are read as the plain twin reads
+    them."""
+    run = subprocess.run(
+        [sys.executable, "-c", _FAR_POINT], cwd=REPO, capture_output=True, text=True, timeout=600
+    )
+    lines = run.stdout.splitlines()
+    assert run.returncode == 0, f"exit code {run.returncode} in {lines[-1:]}: {run.stderr[-2000:]}"
+    results = [json.loads(line) for line in lines if not line.startswith("case")]
+    assert len(results) == 24
+    for got in results:
+        counts, local = got["plain"]
+        assert got["kernel"][0] == got["torch"][0] == counts and min(counts) > 0, got  # cluster points read
+        for name in ("kernel", "torch"):
+            np.testing.assert_allclose(got[name][1], local, rtol=0, atol=1e-5)
 
 
 def test_the_residual_target_turns_a_box_into_its_truth():

@@ -229,12 +229,10 @@ def test_close_publishes_the_answers_in_flight_then_leaves_the_graph(bridged: An
     own = sorted(vehicle.token_keys)
     assert graph(vehicle) == sorted(bridge.tokens() + own)
     vehicle.publish(pointcloud2_cdr(synthetic_turn(seed=5)))
-    deadline = time.monotonic() + WAIT_S
-    while len(worker.held) < 4:
-        assert time.monotonic() < deadline
-        time.sleep(0.02)
+    held(worker, 1)  # paced: one sector in flight
     closing = threading.Thread(target=bridge.close, args=(WAIT_S,))
     closing.start()
+    held(worker, 4)  # closing: the turn's other sectors are submitted at once
     time.sleep(0.3)
     assert closing.is_alive()  # waiting for the sectors in flight
     for msg, fut in worker.held:
@@ -242,6 +240,27 @@ def test_close_publishes_the_answers_in_flight_then_leaves_the_graph(bridged: An
     closing.join(WAIT_S)
     assert len(vehicle.take(4)) == 4
     assert graph(vehicle) == own  # the server's session is still there; the bridge's tokens are not
+
+
+def held(worker: FakeWorker, n: int) -> None:
+    deadline = time.monotonic() + WAIT_S
+    while len(worker.held) < n:
+        assert time.monotonic() < deadline, f"{len(worker.held)} of {n} sectors submitted"
+        time.sleep(0.02)
+
+
+def test_a_turns_sectors_are_submitted_one_at_a_time(bridged: Any) -> None:
+    """Paced: a stream runs one sector per step, so a turn's sectors queued at once would wait out their
+    deadlines on a busy CPU; the next goes once the previous is answered."""
+    _, worker, vehicle = bridged(worker=FakeWorker(hold=True))
+    vehicle.publish(pointcloud2_cdr(synthetic_turn(seed=9)))
+    for n in range(1, 5):
+        held(worker, n)
+        time.sleep(0.2)
+        assert len(worker.held) == n  # nothing more until this one is answered
+        msg, fut = worker.held[-1]
+        fut.set_result(reply_for(msg))
+    assert len(vehicle.take(4)) == 4 and [m.seq for m, _ in worker.held] == [0, 1, 2, 3]
 
 
 def test_with_its_own_session_the_bridge_works_and_closes_it(bridged: Any) -> None:

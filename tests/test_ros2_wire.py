@@ -85,7 +85,7 @@ def test_the_attachment_is_zenoh_ext_serialization_of_seq_time_gid() -> None:
 
 def test_topic_names_and_what_is_derived_from_them() -> None:
     assert check_topic("car1/lidar/points") == "/car1/lidar/points"
-    for bad in ("/", "/car1//points", "/1car/points", "/car-1/points", ""):
+    for bad in ("/", "/car1//points", "/1car/points", "/car-1/points", "", "/cmd__vel", "car__1/points"):
         with pytest.raises(ValueError, match="ROS 2 topic name"):
             check_topic(bad)
     assert default_stream_id("/car1/lidar/points") == "car1"

@@ -1,12 +1,13 @@
 """The scheduler's decision (server/scheduler.py) as a pure function of the queue: at most max_batch, every
-live stream queued -> now, and for a fixed-shape engine a full bucket now when waiting could only pad."""
+live stream queued -> now, and for a fixed-shape engine a full bucket now when waiting could only pad; a
+batch's streams taken round-robin by tenant."""
 
 from __future__ import annotations
 
 import pytest
 
 from model.graph.buckets import BATCH_BUCKETS
-from server.scheduler import Dispatch, Wait, batch_fill, bucket_of, decide
+from server.scheduler import Dispatch, Wait, batch_fill, bucket_of, decide, fair_order
 
 WAIT = 0.05  # max_wait_s
 
@@ -63,3 +64,14 @@ def test_batch_fill():
         bucket_of(33, BATCH_BUCKETS)
     with pytest.raises(ValueError, match="heads: 0"):
         decide(0, 3, 0.0, WAIT, 8, None)
+
+
+def test_fair_order_takes_the_tenants_in_turn():
+    # heads oldest first: a flooding tenant's 5 streams, then 2 of another, then a third's
+    tenants = ["a.", "a.", "a.", "b.", "a.", "b.", "c.", "a."]
+    order = fair_order(tenants)
+    assert sorted(order) == list(range(8))  # every queued stream, once
+    assert order == [0, 3, 6, 1, 5, 2, 4, 7]  # a, b, c, a, b, a, a, a: each tenant's oldest first
+    assert [tenants[i] for i in order[:4]] == ["a.", "b.", "c.", "a."]  # a batch of 4: no tenant twice ahead
+    assert fair_order(["x", "y", "z"]) == [0, 1, 2]  # one stream each: oldest first, as without tenants
+    assert fair_order([]) == []

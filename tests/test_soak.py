@@ -1,6 +1,8 @@
 """The soak script's CI version: a real `phim serve` at twice its measured ceiling for 60 s over HTTP and
 zenoh at once: every sector answered exactly once, no gross RSS growth, no live streams after the idle
-timeout (scripts/soak.sh runs it for ten minutes)."""
+timeout (scripts/soak.sh runs it for ten minutes). The offered rate derives from the ceiling measured in the
+run, so a busy machine gets twice its own ceiling, not a fixed sensor rate (two vehicles at 40 sectors/s were
+8-90 times the ceiling of a busy 2-core machine)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,8 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -19,10 +23,15 @@ def test_sixty_seconds_at_twice_the_ceiling(tmp_path: Path) -> None:
     # heap in use swings with the queue): only a gross leak fails here; the ten-minute run (scripts/soak.sh)
     # holds the RSS to 20 MB/min and the heap in use to 5
     cmd += ["--max-rss-slope", "300", "--max-heap-slope", "300"]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=2400)  # bounded; a busy machine is slow
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     result = json.loads(out.read_text())
     assert all(result["checks"].values()), result
     assert 10 < result["heap_mb_start"] < result["rss_mb_start"]  # the heap gauge was read
+    offered, ceiling = result["offered_sectors_per_s"], result["capacity_sectors_per_s"]
+    slowest = 0.01 * 4 * sum(result["vehicles"].values())  # vehicles at 0.01 turns/s: a load test's slowest
+    assert offered == pytest.approx(max(2 * ceiling, slowest), rel=0.01, abs=0.01), result  # twice its own
+    sent = sum(report["sent"] for report in result["reports"].values())
+    assert sent <= 1.05 * offered * 60 + 8, result  # on schedule (open loop): never more than offered
     for report in result["reports"].values():
         assert report["sent"] > 0 and report["lost"] == 0 and report["errors"] > 0  # overload was reached

@@ -26,6 +26,7 @@ import click
 from clients.bench.server import free_port, spawned
 from clients.connect import ConnectConfig, Transport
 from phim.options import json_option
+from phim.progress import Progress
 
 ROUTER_START_S = 60.0
 
@@ -172,7 +173,11 @@ def bench_fleet_cmd(
 ) -> None:
     """Throughput of fleets of 1..N CPU workers behind one zenoh router, measured in one run."""
     sizes = [int(n) for n in workers.split(",") if n.strip()]
-    rows = [fleet_throughput(n, vehicles, duration, every) for n in sizes]
+    progress = Progress("bench fleet")
+    rows = []
+    for n in sizes:
+        progress(f"{n} workers: starting the router and the workers, then {duration:g} s of synthetic load")
+        rows.append(fleet_throughput(n, vehicles, duration, every))
     if out is not None:
         out.write_text(json.dumps(rows, indent=2) + "\n")
     click.echo(json.dumps(rows) if as_json else table(rows))

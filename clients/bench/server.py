@@ -26,7 +26,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO
@@ -47,8 +47,9 @@ from model.data.samples import KITTI_000000
 from model.data.sectorizer import split_scan
 from model.data.synthetic import synthetic_turn
 from phim.options import EnumValue, json_option
+from phim.progress import Progress, note
 
-READY_TIMEOUT_S = 300.0
+READY_TIMEOUT_S = 900.0  # a start and warm-up, bounded: one forward took 42 s on a 2-core machine at load 20
 
 
 @dataclass(frozen=True)
@@ -230,10 +231,12 @@ def run_bench(
     turns: int,
     warmup: int,
     echo: ConnectConfig | None = None,
+    progress: Callable[[str], None] = lambda what: None,
 ) -> list[TransportBench]:
     """Per transport, the server's requests (and with `echo`, each one's bare round trip after it)."""
     results = []
     for transport in transports:
+        progress(f"{transport.value}: {warmup} warm-up and {turns} timed turns of {len(sectors)} sectors")
         cfg = ConnectConfig(**{**asdict(connect), "transport": transport})
         floor = None if echo is None else Floor(transport, echo.url, echo.zenoh_connect[0])
         try:
@@ -306,16 +309,26 @@ def bench_server_cmd(
     as_json: bool,
 ) -> None:
     """The server's own overhead per sector: end-to-end latency beside the model's time, per transport."""
+    progress = Progress("bench server")
     scan = points or (KITTI_000000 if KITTI_000000.is_file() else None)
+    if scan is None:
+        note(
+            "bench server",
+            f"the real samples' KITTI scan is not at {KITTI_000000} (PHIM_SAMPLES_DIR; README, Quick start): "
+            "sending synthetic_turn(seed=0) instead (--points FILE: a scan of your own)",
+        )
     sectors = load_sectors(scan)
     chosen = list(transport) or [Transport.HTTP, Transport.ZENOH]
     with contextlib.ExitStack() as stack:
+        if floor:
+            progress("starting the bare responder (the transport floor)")
         echo = stack.enter_context(spawned_echo()) if floor else None
         if url:
             connect = ConnectConfig(url=url, zenoh_connect=(zenoh_connect,))
         else:
+            progress("starting `phim serve` and waiting for its warm-up (/health/ready)")
             connect = stack.enter_context(spawned_server(threads, ["--log-level", "warning"]))
-        results = run_bench(connect, chosen, sectors, turns, warmup_turns, echo)
+        results = run_bench(connect, chosen, sectors, turns, warmup_turns, echo, progress)
     source = str(scan) if scan else "synthetic_turn(seed=0)"
     if as_json:
         click.echo(json.dumps({"scan": source, "results": [r.to_dict() for r in results]}))

@@ -5,6 +5,9 @@
   kitti:DIR       a KITTI object `training` root: DIR/velodyne/*.bin with DIR/label_2 and DIR/calib
   nuscenes:DIR    a folder of nuScenes LIDAR_TOP *.pcd.bin sweeps, each with NAME_boxes.txt beside it
   native:DIR      a folder of native .npz scans (ground truth optional, see docs/data.md)
+  custom:DIR      OpenPCDet's custom layout: DIR/points/NAME.npy with DIR/labels/NAME.txt, the scans of
+                  DIR/ImageSets/train.txt (training) or val.txt (evaluation) when present, else all
+                  (`model.data.custom`)
   samples[:DIR]   every labelled real scan in a samples folder laid out like the project's ../shared/data
                   (default: `model.data.samples.SAMPLES_DIR`): each KITTI-layout root in it (velodyne/,
                   label_2/, calib/), each nuScenes sweep with its boxes file, each KITTI scan NAME.bin with
@@ -20,9 +23,11 @@ import enum
 from dataclasses import dataclass
 from pathlib import Path
 
+from model.data.custom import split_names
 from model.data.samples import SAMPLES_DIR
+from model.data.selection import Split
 
-SPEC_HELP = "sim, kitti:DIR, nuscenes:DIR, native:DIR or samples[:DIR]"
+SPEC_HELP = "sim, kitti:DIR, nuscenes:DIR, native:DIR, custom:DIR or samples[:DIR]"
 
 
 KITTI_DIRS = ("velodyne", "label_2", "calib")
@@ -33,13 +38,14 @@ class DataKind(enum.StrEnum):
     KITTI = "kitti"
     NUSCENES = "nuscenes"
     NATIVE = "native"
+    CUSTOM = "custom"
     SAMPLES = "samples"
 
 
 @dataclass(frozen=True)
 class DataSpec:
     kind: DataKind
-    path: Path | None = None  # the folder (kitti, nuscenes, native, samples); None for sim
+    path: Path | None = None  # the folder (kitti, nuscenes, native, custom, samples); None for sim
 
     def __str__(self) -> str:
         if self.kind is DataKind.SIM:
@@ -70,9 +76,9 @@ def parse_data_spec(spec: str) -> DataSpec:
     return DataSpec(kind, path=Path(rest.strip()).expanduser())
 
 
-def list_scan_paths(spec: DataSpec) -> list[Path]:
-    """The scan files a folder spec names, in file-name order; FileNotFoundError naming the spec and what
-    the folder should hold when it does not."""
+def list_scan_paths(spec: DataSpec, split: Split = Split.TRAIN) -> list[Path]:
+    """The scan files a folder spec names, in file-name order (custom: `split`'s list order, or name order);
+    FileNotFoundError naming the spec and what the folder should hold when it does not."""
     if spec.kind is DataKind.SIM or spec.path is None:
         raise ValueError(f"data spec {spec}: not a folder spec")
     root = spec.path
@@ -94,6 +100,11 @@ def list_scan_paths(spec: DataSpec) -> list[Path]:
         folders = sorted(p for p in root.iterdir() if p.is_dir())
         files = [f for folder in folders for f in labelled_scans(folder)]
         wanted = "labelled KITTI, KITTI-layout or nuScenes scans in its subfolders"
+    elif spec.kind is DataKind.CUSTOM:
+        try:
+            return [root / "points" / f"{name}.npy" for name in split_names(root, split)]
+        except (FileNotFoundError, ValueError) as e:
+            raise type(e)(f"data spec {spec}: {e}") from None
     else:
         files = sorted(root.glob("*.npz"))
         wanted = "*.npz native scans"

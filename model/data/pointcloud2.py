@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from contract import MAX_COORDINATE_M
 from model.data.readers import Spin
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -121,7 +122,9 @@ def pointcloud2_points(msg: Any, intensity_scale: float = 1.0) -> np.ndarray:
     Points whose x, y or z is not finite (NaN/inf: no return, in organized clouds) are dropped, whatever
     `is_dense` says. ValueError naming the field when x, y, z or intensity is missing, has count > 1, lies
     past `point_step`, or has a datatype the model cannot use (x, y, z: float32/float64; intensity: any
-    numeric PointField type). See the module docstring for which `intensity_scale` a driver needs.
+    numeric PointField type), and when a finite x, y or z lies beyond the contract's coordinate range
+    (`contract.MAX_COORDINATE_M`: a corrupt cloud or a wrong `is_bigendian`; the whole cloud is refused).
+    See the module docstring for which `intensity_scale` a driver needs.
     """
     point_step = int(msg.point_step)
     order = ">" if msg.is_bigendian else "<"
@@ -144,13 +147,32 @@ def pointcloud2_points(msg: Any, intensity_scale: float = 1.0) -> np.ndarray:
     )
     records = np.frombuffer(_packed_rows(msg), dtype=layout, count=n)  # (N,) structured
     out = np.empty((n, 4), np.float32)
-    with np.errstate(over="ignore", invalid="ignore"):  # float64 beyond float32's range: inf, dropped below
-        for i, name in enumerate(OUTPUT_FIELDS[:3]):
-            out[:, i] = records[name]
+    for i, name in enumerate(OUTPUT_FIELDS[:3]):
+        out[:, i] = _coordinate(records[name], name, bool(msg.is_bigendian))
+    with np.errstate(over="ignore", invalid="ignore"):
         # float64 keeps a scaled uint16/uint32 intensity exact before the cast
         out[:, 3] = records["intensity"].astype(np.float64) * intensity_scale
     keep = np.isfinite(out[:, :3]).all(axis=1)  # (N,)
     return out if keep.all() else out[keep]
+
+
+def _coordinate(values: np.ndarray, name: str, big_endian: bool) -> np.ndarray:
+    """A coordinate field's values (N,) float32 or float64 -> the same as float32; ValueError naming the field
+    when a finite value lies beyond the contract's range (|v| <= MAX_COORDINATE_M): no LiDAR returns that
+    far, so the cloud is corrupt or its byte order is not the one `is_bigendian` declares (little-endian
+    float32 read as big-endian reaches 3e38). NaN and inf (no return) pass, for `pointcloud2_points` to
+    drop."""
+    with np.errstate(invalid="ignore"):
+        far = np.isfinite(values) & (np.abs(values) > MAX_COORDINATE_M)  # (N,)
+    if far.any():
+        first = int(far.argmax())
+        order = "big" if big_endian else "little"
+        raise ValueError(
+            f"PointCloud2 field {name!r}: {int(far.sum())} points beyond {MAX_COORDINATE_M:g} m (point "
+            f"{first}: {float(values[first]):g}); expected |{name}| <= {MAX_COORDINATE_M:g} m (is the data "
+            f"{order}-endian, as is_bigendian says?)"
+        )
+    return values.astype(np.float32)
 
 
 def cloud_spin(points: np.ndarray) -> Spin:

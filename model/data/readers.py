@@ -15,6 +15,7 @@ A drive is a folder of such files, replayed in name order. Label files and class
 from __future__ import annotations
 
 import math
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,11 +67,22 @@ def read_scan(path: Path) -> Scan:
     if path.suffix == ".npz":
         return _native(path)
     if path.suffix == ".bin":
-        raw = np.fromfile(path, dtype="<f4")
-        if raw.size % 4:
-            raise ValueError(f"{path}: {raw.size} floats is not a multiple of 4 (KITTI x, y, z, reflectance)")
-        return Scan(scan_name(path), path, raw.reshape(-1, 4), ("x", "y", "z", "intensity"), Spin.CCW)
+        return _kitti(path)
     raise ValueError(f"{path}: unknown scan format; expected .bin (KITTI), .pcd.bin (nuScenes) or .npz")
+
+
+def _kitti(path: Path) -> Scan:
+    """A KITTI velodyne .bin: 16 bytes a point; a file of another length, or without one finite point, is
+    refused (ValueError naming it), never truncated or sent as empty sectors."""
+    size = path.stat().st_size
+    if size % 16:
+        raise ValueError(
+            f"{path}: {size} bytes is not a multiple of 16 (KITTI: float32 x, y, z, reflectance per point)"
+        )
+    points = np.fromfile(path, dtype="<f4").reshape(-1, 4)  # (N, 4)
+    if points.size and not np.isfinite(points[:, :3]).all(axis=1).any():
+        raise ValueError(f"{path}: none of its {len(points)} points has finite x, y, z")
+    return Scan(scan_name(path), path, points, ("x", "y", "z", "intensity"), Spin.CCW)
 
 
 def _nuscenes(path: Path) -> Scan:
@@ -85,7 +97,18 @@ def _nuscenes(path: Path) -> Scan:
 
 
 def _native(path: Path) -> Scan:
-    with np.load(path, allow_pickle=False) as f:
+    try:
+        return _read_native(path)
+    except ValueError as e:
+        if str(e).startswith(str(path)):  # ours, naming the file already
+            raise
+        raise ValueError(f"{path}: not a readable native scan (.npz): {e}") from e
+    except (OSError, EOFError, KeyError, zipfile.BadZipFile) as e:  # a corrupt or foreign file
+        raise ValueError(f"{path}: not a readable native scan (.npz): {e}") from e
+
+
+def _read_native(path: Path) -> Scan:
+    with open(path, "rb") as file, np.load(file, allow_pickle=False) as f:  # closed also when np.load fails
         if "points" not in f or "fields" not in f:
             raise ValueError(f"{path}: a native scan needs arrays 'points' (N, C) and 'fields' (C,)")
         points = np.ascontiguousarray(f["points"], dtype=np.float32)

@@ -13,10 +13,14 @@ Numpy only at import time: rosbags and mcap are imported when a recording is ope
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import itertools
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from contract import REQUIRED_FIELDS
 from model.data.pointcloud2 import POINTCLOUD2, cloud_spin, decode_pointcloud2, pointcloud2_points, stamp_ns
@@ -128,11 +132,27 @@ def _messages(path: Path, topic: str) -> Iterator[tuple[int, bytes]]:
 
 
 def _scans(path: Path, topic: str, intensity_scale: float) -> Iterator[Scan]:
-    for i, (log_ns, raw) in enumerate(_messages(path, topic)):
+    """ValueError naming the file (and the message) for a storage file or a message that cannot be read."""
+    with contextlib.closing(_messages(path, topic)) as messages:  # the file closes on an error too
+        for i in itertools.count():
+            try:
+                log_ns, raw = next(messages)
+            except StopIteration:
+                return
+            except Exception as e:  # mcap, rosbags and sqlite raise their own errors (struct's, EOF) on junk
+                raise ValueError(f"{path}: not a readable recording after {i} messages: {e!r}") from e
+            yield _scan(path, topic, intensity_scale, i, log_ns, raw)
+
+
+def _scan(path: Path, topic: str, intensity_scale: float, i: int, log_ns: int, raw: bytes) -> Scan:
+    try:
         msg = decode_pointcloud2(raw)
-        try:
-            points = pointcloud2_points(msg, intensity_scale)  # (N, 4)
-        except ValueError as e:
-            raise ValueError(f"{path}: {topic} message {i}: {e}") from e
-        stamp = stamp_ns(msg) or int(log_ns)
-        yield Scan(f"{i:06d}", path, points, REQUIRED_FIELDS, cloud_spin(points), stamp)
+    except Exception as e:  # rosbags raises what the bytes make it hit: struct, index, value errors
+        raise ValueError(f"{path}: {topic} message {i}: not a PointCloud2 in CDR ({e!r})") from e
+    try:
+        points = pointcloud2_points(msg, intensity_scale)  # (N, 4)
+        points = points[np.isfinite(points[:, 3])]  # one rule, as the bridge's: a NaN drops its point
+    except ValueError as e:
+        raise ValueError(f"{path}: {topic} message {i}: {e}") from e
+    stamp = stamp_ns(msg) or int(log_ns)
+    return Scan(f"{i:06d}", path, points, REQUIRED_FIELDS, cloud_spin(points), stamp)

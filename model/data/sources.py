@@ -5,7 +5,9 @@
   uses stream 0 by default and evaluation stream 7, so held-out scans are never trained on.
 - recorded data (`kitti:DIR`, `nuscenes:DIR`, `native:DIR`, `samples[:DIR]`): the folder's scans, cycled;
   training visits them in a fresh random order every pass (seeded), evaluation in file order. Samples are
-  named SUBFOLDER/NAME (KITTI and the Argoverse conversion both have a 000000).
+  named SUBFOLDER/NAME (KITTI and the Argoverse conversion both have a 000000). A `custom:DIR` folder gives
+  the scans of one split (`Split`: training reads ImageSets/train.txt, evaluation val.txt, when present),
+  their classes mapped by a `ClassMap` (model/data/custom.py).
 `iter_labeled(spec)` yields a data set's scans in order.
 Sources are plain picklable objects, so data-loader worker processes can build scans themselves.
 """
@@ -20,10 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
+from model.data.custom import check_custom_files, read_custom_scan
 from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
 from model.data.labels import AS_IS
 from model.data.readers import read_labeled
 from model.data.samples import SAMPLE_FRAMES
+from model.data.selection import ClassMap, Split
 from model.data.sim import SimConfig, simulate
 from model.data.types import LabeledScan
 
@@ -51,12 +55,15 @@ class FileSource:
     paths: tuple[Path, ...]
     shuffle_seed: int | None = None  # None: file order
     root: Path | None = None  # samples: scans named SUBFOLDER/NAME, read by SAMPLE_FRAMES
+    classes: ClassMap = field(default_factory=ClassMap)  # custom (points/NAME.npy): the class names
 
     def __call__(self, index: int) -> LabeledScan:
         n = len(self.paths)
         epoch, k = divmod(index, n)
         if self.shuffle_seed is not None:
             k = int(np.random.default_rng([self.shuffle_seed, epoch]).permutation(n)[k])
+        if self.paths[k].suffix == ".npy":
+            return read_custom_scan(self.paths[k], self.classes)
         if self.root is None:
             return read_labeled(self.paths[k])
         folder = self.paths[k].relative_to(self.root).parts[0]
@@ -67,21 +74,34 @@ class FileSource:
         return len(self.paths)
 
 
-def scan_source(spec: str, seed: int, shuffle: bool = True) -> SimSource | FileSource:
-    """A data spec (`sim`, `kitti:DIR`, ...) -> its source; `seed` picks the sim stream or the shuffling."""
+def scan_source(
+    spec: str,
+    seed: int,
+    shuffle: bool = True,
+    split: Split = Split.TRAIN,
+    classes: ClassMap | None = None,
+) -> SimSource | FileSource:
+    """A data spec (`sim`, `kitti:DIR`, ...) -> its source; `seed` picks the sim stream or the shuffling;
+    `split` and `classes` (None: the default map) apply to `custom:DIR`, and a class map to nothing else."""
     parsed = parse_data_spec(spec)
+    if classes is not None and classes != ClassMap() and parsed.kind is not DataKind.CUSTOM:
+        raise ValueError(f"data {spec!r}: a class map applies to custom:DIR data only")
     if parsed.kind is DataKind.SIM:
         return SimSource(seed)
-    paths = tuple(list_scan_paths(parsed))
+    paths = tuple(list_scan_paths(parsed, split))
     if not paths:
         raise ValueError(f"data {spec!r}: no scans found")
+    if parsed.kind is DataKind.CUSTOM:  # every label file parses, before a run starts
+        check_custom_files(list(paths), classes or ClassMap())
     root = parsed.path if parsed.kind is DataKind.SAMPLES else None
-    return FileSource(paths, seed if shuffle else None, root)
+    return FileSource(paths, seed if shuffle else None, root, classes or ClassMap())
 
 
-def iter_labeled(spec: str, seed: int = 0) -> Iterator[LabeledScan]:
-    """The labelled scans of a data set, in order (the simulator: endless, scans of stream `seed`); a
-    folder is checked now, before the first scan is asked for."""
-    source = scan_source(spec, seed, shuffle=False)
+def iter_labeled(
+    spec: str, seed: int = 0, split: Split = Split.TRAIN, classes: ClassMap | None = None
+) -> Iterator[LabeledScan]:
+    """The labelled scans of a data set, in order (the simulator: endless, scans of stream `seed`; custom:
+    `split`'s); a folder is checked now, before the first scan is asked for."""
+    source = scan_source(spec, seed, shuffle=False, split=split, classes=classes)
     indices = itertools.count() if isinstance(source, SimSource) else range(len(source))
     return (source(i) for i in indices)

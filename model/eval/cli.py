@@ -6,18 +6,26 @@ import dataclasses
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
+from contract import DEFAULT_MIN_SCORE
 from model.config import MambaHistory, Precision
+from model.data.selection import ClassMap, Split
 from model.tools.options import (
     checkpoint_option,
+    class_map_option,
     data_option,
     device_option,
     held_out_seed_option,
     precision_option,
+    refiner_option,
 )
 from phim.options import json_option
+
+if TYPE_CHECKING:
+    from model.data.sources import FileSource, SimSource
 
 NewFile = click.Path(dir_okay=False, path_type=Path)
 Folder = click.Path(file_okay=False, path_type=Path)
@@ -35,12 +43,27 @@ def scans_option(default: int, what: str):
 
 @click.command()
 @checkpoint_option("default")
-@data_option
+@data_option(Split.VAL)
+@class_map_option
 @scans_option(200, "evaluate")
 @held_out_seed_option
 @json_option
 @click.option("--predictions", type=NewFile, help="Write the predictions to this file (native .npz).")
 @click.option("--pictures", type=Folder, help="Write a BEV picture per scan into this folder.")
+@click.option(
+    "--min-score",
+    type=click.FloatRange(0.0, 1.0),
+    default=DEFAULT_MIN_SCORE,
+    show_default=True,
+    help="--pictures draw the boxes scored at least this, as a server at this min_score replies (the "
+    "scores read every box).",
+)
+@click.option(
+    "--score-curve",
+    is_flag=True,
+    help="Also precision, recall and F1 per class by score threshold (JSON: score_curve): where to cut the "
+    "boxes a server returns (phim serve --min-score).",
+)
 @click.option(
     "--rescore",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
@@ -67,40 +90,49 @@ def scans_option(default: int, what: str):
 )
 @device_option()
 @precision_option
+@refiner_option
 def eval_cmd(
     checkpoint: str,
     data: str,
+    class_map: ClassMap,
     scans: int,
     seed: int,
     as_json: bool,
     predictions: Path | None,
     pictures: Path | None,
+    min_score: float,
+    score_curve: bool,
     rescore: Path | None,
     max_range: float,
     turns: int,
     history: str | None,
     device: str,
     precision: Precision,
+    refiner: bool,
 ) -> None:
     """Waymo-style AP/APH per class and level, per buffer fill (the full turn and each buffered count), the
     vehicle AP at IoU 0.5 too, and the vehicle check (recall of well-seen vehicles, false boxes per scan)."""
     from model.checkpoint import resolve_checkpoint
-    from model.data.sources import scan_source
     from model.data.types import LabeledScan
     from model.device import pick_device
     from model.eval.metrics import count_ground_truths, format_table
     from model.eval.prediction_files import read_predictions_by_fill, write_predictions
     from model.eval.runner import ScanResult, run_eval, run_rescore, within_range
+    from phim.progress import Progress
 
-    source = scan_source(data, seed, shuffle=False)
+    source = _source(data, seed, class_map)
     count = min(scans, len(source))
     t0 = time.perf_counter()
+    progress, evaluated = Progress("eval"), [0]
+    progress(f"{count} scans of {data} to evaluate")
 
     def on_scan(scan: LabeledScan, r: ScanResult) -> None:
+        evaluated[0] += 1
+        progress.count("scans evaluated", evaluated[0], count)
         if pictures is not None:
             from model.eval.pictures import draw_result
 
-            draw_result(pictures / f"{r.name}.png", scan, r)
+            draw_result(pictures / f"{r.name}.png", scan, r, min_score)
 
     by_turn: dict = {}
     if rescore is not None:
@@ -108,7 +140,9 @@ def eval_cmd(
         results = run_rescore(read_predictions_by_fill(rescore), range(count), source, on_scan)
     else:
         model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
-        what = f"checkpoint {ckpt_path}, precision {precision.value}"
+        if not refiner:  # the detector's own boxes (e.g. the default's, beside a fine-tuned detector's)
+            model.drop_refiner()
+        what = f"checkpoint {ckpt_path}{'' if refiner else ' (no refiner)'}, precision {precision.value}"
         results = run_eval(model, range(count), source, on_scan, precision)
         if history is not None:
             model.cfg = dataclasses.replace(model.cfg, history=MambaHistory(history))
@@ -121,12 +155,35 @@ def eval_cmd(
         write_predictions(predictions, results)
     results = [within_range(r, max_range) for r in results]
     metrics = _metrics(results, max_range, by_turn)
+    if score_curve:
+        from model.eval.score_curve import score_curve as curve_of
+
+        metrics["score_curve"] = curve_of(results)
     if as_json:
         click.echo(json.dumps(metrics, indent=2))
         return
     click.echo(f"{what}, data {data}, {count} scans in {time.perf_counter() - t0:.1f} s")
     click.echo(format_table(metrics, count_ground_truths([r.truths[-1] for r in results])))
     _print_more(metrics)
+    if score_curve:
+        from model.eval.score_curve import format_curve
+
+        click.echo(format_curve(metrics["score_curve"]))
+
+
+def _source(data: str, seed: int, class_map: ClassMap) -> SimSource | FileSource:
+    """The evaluated scans: custom:DIR's val split (ImageSets/val.txt when present) with its class map, every
+    file checked now (a bad one: a usage error naming it, before any model runs)."""
+    from model.data.custom import check_custom_files
+    from model.data.sources import FileSource, scan_source
+
+    try:
+        source = scan_source(data, seed, shuffle=False, split=Split.VAL, classes=class_map)
+        if isinstance(source, FileSource) and source.paths[0].suffix == ".npy":
+            check_custom_files(list(source.paths), class_map, points=True)
+    except ValueError as e:
+        raise click.BadParameter(str(e), param_hint="--data / --class-map") from None
+    return source
 
 
 def _metrics(results: list, max_range: float, by_turn: dict) -> dict:
@@ -167,7 +224,8 @@ def _print_more(metrics: dict) -> None:
 
 @click.command()
 @checkpoint_option("default")
-@data_option
+@data_option(Split.VAL)
+@class_map_option
 @scans_option(50, "look at")
 @held_out_seed_option
 @json_option
@@ -180,15 +238,21 @@ def _print_more(metrics: dict) -> None:
     help="Group by class, or by class and the points inside the box, or by class and range.",
 )
 def diagnose_cmd(
-    checkpoint: str, data: str, scans: int, seed: int, as_json: bool, device: str, by: str
+    checkpoint: str,
+    data: str,
+    class_map: ClassMap,
+    scans: int,
+    seed: int,
+    as_json: bool,
+    device: str,
+    by: str,
 ) -> None:
     """Each part of the predicted boxes against the truth, read at the true centre cells, per class."""
     from model.checkpoint import resolve_checkpoint
-    from model.data.sources import scan_source
     from model.device import pick_device
     from model.eval.diagnose import Breakdown, diagnose, format_diagnosis
 
-    source = scan_source(data, seed, shuffle=False)
+    source = _source(data, seed, class_map)
     count = min(scans, len(source))
     model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
     result = diagnose(model, range(count), source, by=Breakdown(by))

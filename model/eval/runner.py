@@ -21,6 +21,7 @@ from model.config import CLASS_NAMES, Precision
 from model.data.readers import feature_columns, sector_of_xy
 from model.data.types import GroundTruth, LabeledScan, Predictions
 from model.detector import PHiM
+from model.ego import drop_ego_boxes, drop_ego_points
 from model.eval.metrics import MetricsConfig, crop_to_fov, evaluate
 from model.layers.head import decode
 from model.layers.phim_block import StreamLayout
@@ -67,16 +68,19 @@ def scan_sectors(scan: LabeledScan, point_features: int, sectors: int) -> list[t
 
 @torch.inference_mode()
 def predict_scan(model: PHiM, scan: LabeledScan, precision: Precision = Precision.FP32) -> ScanResult:
-    """The predictions at every fill level; the forward runs in `precision`, the decoding in float32."""
+    """The predictions at every fill level; the forward runs in `precision`, the decoding in float32. As the
+    server streams: without the ego vehicle's points and boxes (`cfg.ego`), every other box kept."""
     cfg = model.cfg
     n = cfg.sectors_per_turn
-    sectors = [s.to(model.device) for s in scan_sectors(scan, cfg.vfe.point_features, n)]
+    sectors = drop_ego_points(scan_sectors(scan, cfg.vfe.point_features, n), cfg.ego)
+    sectors = [s.to(model.device) for s in sectors]
     with autocast(precision, model.device):
         enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
         maps = model.predict([enc.sectors[: b + 1] for b in range(n)])  # float32 maps
     dets = decode(maps, cfg.head, cfg.bev)
     if model.refiner is not None:  # prediction b covers sectors 0 .. b
         dets = [refine(model.refiner, d, torch.cat(sectors[: b + 1])) for b, d in enumerate(dets)]
+    dets = [drop_ego_boxes(d, cfg.ego) for d in dets]
     preds = [
         crop_prediction(
             Predictions(d.boxes.cpu().numpy(), d.scores.cpu().numpy(), d.labels.cpu().numpy()), b, scan, n

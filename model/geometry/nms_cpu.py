@@ -22,6 +22,7 @@ from torch import Tensor
 
 _SX = (1.0, 1.0, -1.0, -1.0)  # corner signs along and across the heading, counter-clockwise
 _SY = (-1.0, 1.0, 1.0, -1.0)
+_CLIP = float(2**30)  # grid cell coordinates at most, either side of the origin
 
 
 @numba.njit(cache=True, nogil=True)
@@ -90,8 +91,10 @@ def _grid(boxes):  # pragma: no cover - compiled
         if finite[i]:
             rmax = max(rmax, 0.5 * math.sqrt(boxes[i, 3] ** 2 + boxes[i, 4] ** 2))
     cell = max(2.0 * rmax, 1e-6)
-    fx = np.where(finite, np.floor(np.clip(boxes[:, 0] / cell, -1e12, 1e12)), 0.0)
-    fy = np.where(finite, np.floor(np.clip(boxes[:, 1] / cell, -1e12, 1e12)), 0.0)
+    # clipped: boxes past the edge share its cell (they are neighbours of what can reach them), the cell
+    # coordinates stay below 2^31 and `_cell`'s hash below 2^58 (no int64 overflow for any box)
+    fx = np.where(finite, np.floor(np.clip(boxes[:, 0] / cell, -_CLIP, _CLIP)), 0.0)
+    fy = np.where(finite, np.floor(np.clip(boxes[:, 1] / cell, -_CLIP, _CLIP)), 0.0)
     cx = (fx - fx.min() + 1).astype(np.int64)  # a neighbour cell of any box has coordinates >= 0
     cy = (fy - fy.min() + 1).astype(np.int64)
     hashed = (fx.max() - fx.min() + 3) * (fy.max() - fy.min() + 3) > 4 * n + 64  # spread wide: hash

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from model.config import Engine, Precision
 from model.detector import PHiM
+from model.ego import drop_ego_boxes, drop_ego_points
 from model.geometry.boxes import Detections
 from model.graph.bev_crop import EMPTY
 from model.graph.buckets import CapacityPlanner, batch_bucket, row_bucket
@@ -176,11 +177,13 @@ class GraphStreamingDetector:
         self, points: list[Tensor], states: list[SlotState]
     ) -> tuple[list[SectorOutcome], list[SlotState]]:
         """One sector per stream: points[i] (N_i, C) float32 goes with states[i]. Per stream: its result and
-        new state, or SectorRejected and its state as it was."""
+        new state, or SectorRejected and its state as it was. As the eager step, without the ego vehicle's
+        points and boxes (`cfg.ego`)."""
         if len(points) != len(states):
             raise ValueError(f"{len(points)} sectors but {len(states)} states")
         for p in points:
             self.validate(p)
+        points = drop_ego_points(points, self.cfg.ego)
         self.slots.check(states)
         n = len(points)
         wedges = self._crop_wedges(states)
@@ -255,6 +258,7 @@ class GraphStreamingDetector:
         the detector runs crops) on crops, writing no slot (warm-up compiles a bucket with it)."""
         for p in points:
             self.validate(p)
+        points = drop_ego_points(points, self.cfg.ego)
         fresh = [SlotState(self.slots.blank_row, 0, self.slots.keep, 0)] * len(points)  # reads the blank row
         wedges = [0] * len(points) if crop and self.bev_crop else None
         inputs = self.inputs(points, fresh, batch_bucket(len(points)), wedges)
@@ -363,6 +367,7 @@ class GraphStreamingDetector:
         dets, buffers = refine_streams(
             self.model.refiner, dets, [s.points for s in states], points, self.cfg.buffer_sectors
         )
+        dets = [drop_ego_boxes(d, self.cfg.ego) for d in dets]
         kept, out_of_range = STATS.index("points_kept"), STATS.index("points_out_of_range")
         results = [
             SectorResult(d, s.buffered_sectors + 1, int(st[kept]), int(st[out_of_range]))

@@ -32,6 +32,18 @@ f32 = np.float32
 
 
 @numba.njit(cache=True, nogil=True)
+def _bin(t, n):  # pragma: no cover - compiled
+    """A scaled coordinate t -> its bin in [0, n): truncation (floor where in range) clamped, as aten's
+    `.long().clamp_(0, n - 1)` does for finite t in int64's range, but clamped while a float: a huge, inf
+    or NaN t (a point far out of range) has no int64, and converting it is undefined."""
+    if not t > 0:
+        return 0
+    if t >= n - 1:
+        return n - 1
+    return np.int64(t)
+
+
+@numba.njit(cache=True, nogil=True)
 def _point_keys(points, counts, radius, azimuth, n_p, grid, shape, key, base, kept, out):  # pragma: no cover
     """points (B, Np, C) float32; counts (B,) int64; radius, azimuth (B, Np) float32: hypot and atan2 of
     the real points' x, y (0 on padding); grid (7,) float64: r_min, r_max, r_size, theta_size, z_min,
@@ -54,9 +66,9 @@ def _point_keys(points, counts, radius, azimuth, n_p, grid, shape, key, base, ke
             for c in range(n_p):
                 base[c, i] = points[b, j, c] if real and c < n_c else zero
             z, r, theta = base[2, i], radius[b, j], azimuth[b, j]
-            ri = min(max(np.int64((r - r_min) * inv_r), 0), n_r - 1)  # truncation: floor where in range
-            ti = min(max(np.int64((theta + pi) * inv_t), 0), n_t - 1)
-            zi = min(max(np.int64((z - z_min) * inv_z), 0), n_z - 1)
+            ri = _bin((r - r_min) * inv_r, n_r)
+            ti = _bin((theta + pi) * inv_t, n_t)
+            zi = _bin((z - z_min) * inv_z, n_z)
             base[n_p, i] = r
             base[n_p + 1, i] = r - (f32(ri) * r_size + r_c0)
             base[n_p + 2, i] = r * (theta - (f32(ti) * t_size + t_c0))

@@ -26,11 +26,10 @@ from torch import Tensor, nn
 
 from model.config import RefineConfig
 from model.geometry.boxes import Detections
-from model.layers.refine_cpu import box_points_cpu
+from model.layers.refine_cpu import REACH, SLACK, box_points_cpu, grid_cells
 
 _CELL = 1.0  # metres: the grid index's cells
 _EPS = 1e-3  # metres around a box's bounding rectangle
-_KEY = 1 << 20  # cell-column offset in a key: cells (ix, iy) with |ix|, |iy| < 2**19
 
 
 def to_box_frame(points: Tensor, boxes: Tensor) -> Tensor:
@@ -70,30 +69,51 @@ def box_points(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[Tensor
 
 
 def box_points_torch(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[Tensor, Tensor]:
-    """`box_points_reference`'s result through a grid index of 1 m cells (one sort of the points by cell):
+    """`box_points_reference`'s result through the kernel's grid index (`refine_cpu`: 1 m cells over the
+    boxes' rectangles, at most `MAX_SIDE` a side; one sort of the points by cell):
     each box tests the points of the cells under its grown outline's bounding rectangle, one contiguous run
-    of the sorted points per column of cells."""
+    of the sorted points per column of cells. Safe for any values, as the kernel."""
     b, dev = boxes.shape[0], points.device
+    none = torch.zeros(0, dtype=torch.int64, device=dev)
     if b == 0 or points.shape[0] == 0:
-        none = torch.zeros(0, dtype=torch.int64, device=dev)
         return _inside(points, boxes, none, none, cfg)
-    cell = torch.floor(points[:, :2] / _CELL).long()  # (N, 2)
-    key, order = torch.sort(cell[:, 0] * _KEY + cell[:, 1], stable=True)  # (N,)
-    grow = boxes.new_tensor(cfg.grow)
-    half_l, half_w = (boxes[:, 3] + grow[0]) / 2, (boxes[:, 4] + grow[1]) / 2
-    c, s = torch.cos(boxes[:, 6]).abs(), torch.sin(boxes[:, 6]).abs()
-    extent = torch.stack((c * half_l + s * half_w, s * half_l + c * half_w), 1) + _EPS  # (B, 2) half sides
-    lo = torch.floor((boxes[:, :2] - extent) / _CELL).long()  # (B, 2) the bounding rectangle's cells
-    hi = torch.floor((boxes[:, :2] + extent) / _CELL).long()
-    columns = hi[:, 0] - lo[:, 0] + 1  # (B,)
+    rect = _rectangles(boxes, cfg.grow)  # (B, 4) float64
+    x, y = points[:, 0].double(), points[:, 1].double()  # (N,) each
+    span = torch.cat((rect[:, :2].amin(0).clamp(min=-REACH), rect[:, 2:].amax(0).clamp(max=REACH)))
+    x0, y0, x1, y1 = span.tolist()  # the rectangles' span, finite (one wait on the device)
+    if not (x0 <= x1 and y0 <= y1):  # no rectangle holds a finite point
+        return _inside(points, boxes, none, none, cfg)
+    cell, w, h = grid_cells(x0, y0, x1, y1, _CELL)
+    in_grid = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)  # a float test before any integer
+    key = torch.where(in_grid, _index(x, x0, cell, w) * h + _index(y, y0, cell, h), w * h)  # (N,)
+    key, order = torch.sort(key, stable=True)  # points outside the grid last
+    lo_x, lo_y = _index(rect[:, 0], x0, cell, w), _index(rect[:, 1], y0, cell, h)  # (B,) each
+    hi_x, hi_y = _index(rect[:, 2], x0, cell, w), _index(rect[:, 3], y0, cell, h)
+    columns = (hi_x - lo_x + 1).clamp_(min=0)  # (B,) none for a box of negative size
     box = torch.arange(b, device=dev).repeat_interleave(columns)  # (C,) one row per column of cells
-    ix = lo[box, 0] + torch.arange(int(columns.sum()), device=dev) - (torch.cumsum(columns, 0) - columns)[box]
-    start = torch.searchsorted(key, ix * _KEY + lo[box, 1])  # (C,)
-    count = torch.searchsorted(key, ix * _KEY + hi[box, 1], right=True) - start
+    ix = lo_x[box] + torch.arange(int(columns.sum()), device=dev) - (torch.cumsum(columns, 0) - columns)[box]
+    start = torch.searchsorted(key, ix * h + lo_y[box])  # (C,)
+    count = (torch.searchsorted(key, ix * h + hi_y[box], right=True) - start).clamp_(min=0)
     first = torch.cumsum(count, 0) - count
     run = torch.arange(int(count.sum()), device=dev) - first.repeat_interleave(count)
     point = order[start.repeat_interleave(count) + run]  # (T,)
     return _inside(points, boxes, box.repeat_interleave(count), point, cfg)
+
+
+def _rectangles(boxes: Tensor, grow: tuple[float, float, float]) -> Tensor:
+    """boxes (B, 7) -> (B, 4) float64 lo_x, lo_y, hi_x, hi_y: each grown box's bounding rectangle, as the
+    kernel's (`refine_cpu._rectangles`: widened by _EPS and SLACK, a NaN bound unbounded)."""
+    bx = boxes.double()
+    half_l, half_w = (bx[:, 3] + grow[0]) / 2, (bx[:, 4] + grow[1]) / 2
+    c, s = torch.cos(bx[:, 6]).abs(), torch.sin(bx[:, 6]).abs()
+    extent = torch.stack((c * half_l + s * half_w, s * half_l + c * half_w), 1) * (1 + SLACK) + _EPS  # (B, 2)
+    lo, hi = bx[:, :2] - extent, bx[:, :2] + extent
+    return torch.cat((lo.nan_to_num(nan=-math.inf), hi.nan_to_num(nan=math.inf)), 1)
+
+
+def _index(v: Tensor, origin: float, cell: float, n: int) -> Tensor:
+    """`refine_cpu._index` of each value: the cell in [0, n) of a grid from `origin`, clamped as a float."""
+    return ((v - origin) / cell).nan_to_num_(nan=0.0).clamp_(0, n - 1).floor_().long()
 
 
 def _inside(

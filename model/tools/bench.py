@@ -8,6 +8,7 @@ from __future__ import annotations
 import resource
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import torch
@@ -47,6 +48,20 @@ class ModelBench:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+Progress = Callable[[str], None]  # says what a benchmark is doing (the CLI prints it on stderr)
+
+
+def _silent(what: str) -> None:
+    """No progress reports."""
+
+
+def _turn_stage(t: int, warmup: int, timed: int) -> str:
+    """What turn `t` (0-based, warm-up first) of a benchmark is."""
+    if t < warmup:
+        return f"warm-up turn {t + 1} of {warmup} (a graph engine compiles here)"
+    return f"timed turn {t - warmup + 1} of {timed}"
 
 
 def _device_name(dev: torch.device) -> str:
@@ -104,6 +119,7 @@ def bench_model(
     precision: Precision = Precision.FP32,
     sector_points: int = 0,
     bev_crop: bool = True,
+    progress: Progress = _silent,
 ) -> ModelBench:
     """Stream `turn` (N, C) split into sectors, `batch` streams at once, in `precision`; time every step
     after warm-up (a graph engine first learns its capacities from the turn, and compiles during the
@@ -120,6 +136,7 @@ def bench_model(
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     for t in range(warmup_turns + turns):
+        progress(_turn_stage(t, warmup_turns, turns))
         for k, ms in enumerate(run.turn()):
             if t >= warmup_turns:
                 times[k].append(ms)
@@ -178,6 +195,7 @@ def compare_engines(
     rounds: int = 10,
     warmup_turns: int = 2,
     precision: Precision = Precision.FP32,
+    progress: Progress = _silent,
 ) -> EngineComparison:
     """Stream `turn` through a detector of each engine (one stream each, same weights) in alternating turns,
     after `warmup_turns` of each (compiles there); the ratios of their p50s, overall and per round."""
@@ -185,11 +203,13 @@ def compare_engines(
         raise ValueError(f"engines: {[e.value for e in engines]}; expected two or more different engines")
     sectors = [s.to(model.device) for s in split_turn(turn, model.cfg.sectors_per_turn)]
     runs = {e: _Streams(streaming_detector(model, e, precision=precision), sectors) for e in engines}
-    for _ in range(warmup_turns):
+    for t in range(warmup_turns):
+        progress(_turn_stage(t, warmup_turns, rounds) + " of each engine")
         for run in runs.values():
             run.turn()
     times: dict[Engine, list[list[float]]] = {e: [] for e in engines}
     for r in range(rounds):
+        progress(_turn_stage(warmup_turns + r, warmup_turns, rounds) + " of each engine")
         for e in engines if r % 2 == 0 else engines[::-1]:
             times[e].append(runs[e].turn())
     flat = {e: sorted(x for t in ts for x in t) for e, ts in times.items()}
@@ -234,7 +254,9 @@ class RefinerBench:
         return asdict(self)
 
 
-def bench_refiner(model: PHiM, turn: Tensor, repeats: int = 30, streams: int = 1) -> RefinerBench:
+def bench_refiner(
+    model: PHiM, turn: Tensor, repeats: int = 30, streams: int = 1, progress: Progress = _silent
+) -> RefinerBench:
     """The box refiner on the detector's boxes for the whole `turn` (what it does after every step with its
     buffer loaded) for a batch of `streams` streams with that turn, as a server holds them (the points on
     the host), `repeats` times each: the point lookups, the PointNet and all of `refine_many`."""
@@ -244,6 +266,7 @@ def bench_refiner(model: PHiM, turn: Tensor, repeats: int = 30, streams: int = 1
     sectors = split_turn(turn, model.cfg.sectors_per_turn)
     points = [torch.cat(sectors)[:, :3].contiguous()] * streams  # (N, 3) each, on the host
     with torch.inference_mode():
+        progress("detecting the turn's boxes (the refiner's input)")
         on_dev = [s.to(dev) for s in sectors]
         enc = model.encode(on_dev, StreamLayout.single_stream(len(sectors), dev), model.init_states(1))
         dets = [model.detect([enc.sectors])[0].to("cpu")] * streams
@@ -256,6 +279,7 @@ def bench_refiner(model: PHiM, turn: Tensor, repeats: int = 30, streams: int = 1
             "pointnet": lambda: refiner_forward(model.refiner, local, counts, *inputs),
             "refine": lambda: refine_many(model.refiner, dets, points),
         }
+        progress(f"timing lookup, PointNet and refine on {len(dets[0])} boxes, {repeats} + 2 runs of each")
         p50 = _interleaved(runs, repeats, dev)
     return RefinerBench(
         config=model.cfg.name,

@@ -22,6 +22,7 @@ from model.tools.options import (
     threads_option,
 )
 from phim.options import EnumValue, json_option
+from phim.progress import Progress, note
 
 if TYPE_CHECKING:
     import torch
@@ -29,8 +30,12 @@ if TYPE_CHECKING:
     from model.detector import PHiM
 
 
-def load_turn(points: Path | None, fallback_kitti: bool) -> tuple[torch.Tensor, str]:
-    """The scan to run on: `points`, else KITTI 000000 when asked and present, else a synthetic turn."""
+def load_turn(
+    points: Path | None, fallback_kitti: bool, command: str = "bench", scene: bool = False
+) -> tuple[torch.Tensor, str]:
+    """The scan to run on: `points`, else KITTI 000000 when asked and present, else a synthetic turn
+    (`scene`: a simulated street scan instead, which has objects to detect). Falling back from KITTI is
+    said on stderr."""
     import torch
 
     from model.data.samples import KITTI_000000
@@ -41,7 +46,18 @@ def load_turn(points: Path | None, fallback_kitti: bool) -> tuple[torch.Tensor, 
         return load_kitti_bin(str(points)), str(points)
     if fallback_kitti and KITTI_000000.is_file():
         return load_kitti_bin(str(KITTI_000000)), str(KITTI_000000)
-    return torch.from_numpy(synthetic_turn(seed=0)), "synthetic_turn(seed=0)"
+    source = "simulate(seed=3)" if scene else "synthetic_turn(seed=0)"
+    if fallback_kitti:
+        note(
+            command,
+            f"the real samples' KITTI scan is not at {KITTI_000000} (PHIM_SAMPLES_DIR; README, Quick start): "
+            f"running on {source} instead (--points FILE: a scan of your own)",
+        )
+    if scene:
+        from model.data.sim.simulate import simulate
+
+        return torch.from_numpy(simulate(seed=3).points), source
+    return torch.from_numpy(synthetic_turn(seed=0)), source
 
 
 def load_model(
@@ -76,8 +92,10 @@ def info(config: str, points: Path | None, as_json: bool) -> None:
     """Parameter count and measured GFLOPs of a config (FLOPs counted on a real forward)."""
     from model.tools.info import model_info
 
-    turn, source = load_turn(points, fallback_kitti=False)
-    result = model_info(get_config(config), turn).to_dict() | {"input": source}
+    progress = Progress("model info")
+    progress("importing torch and the model")
+    turn, source = load_turn(points, fallback_kitti=False, command="model info")
+    result = model_info(get_config(config), turn, progress).to_dict() | {"input": source}
     if as_json:
         click.echo(json.dumps(result))
         return
@@ -133,10 +151,12 @@ def bench_model_cmd(
     from model.tools.bench import bench_model
 
     logging.basicConfig(level=logging.WARNING)
+    progress = Progress("bench model")
+    progress(f"loading the model ({checkpoint or config})")
     model = load_model(config, checkpoint, device, threads, refiner)
     if scan is not None:
         model.set_scan(scan)
-    turn, source = load_turn(points, fallback_kitti=True)
+    turn, source = load_turn(points, fallback_kitti=True, command="bench model")
     result = bench_model(
         model,
         turn,
@@ -146,6 +166,7 @@ def bench_model_cmd(
         precision=precision,
         sector_points=sector_points,
         bev_crop=bev_crop,
+        progress=progress,
     )
     result = result.to_dict()
     result |= {"input": source}
@@ -212,11 +233,16 @@ def bench_engines_cmd(
             param_hint="--engines",
         )
     logging.basicConfig(level=logging.WARNING)
+    progress = Progress("bench engines")
+    progress(f"loading the model ({checkpoint or config})")
     model = load_model(config, checkpoint, device, threads, refiner)
     if scan is not None:  # the fixed-shape engines have their own segmented scan
         model.set_scan(scan)
-    turn, source = load_turn(points, fallback_kitti=True)
-    result = compare_engines(model, turn, [Engine(n) for n in names], rounds, precision=precision).to_dict()
+    turn, source = load_turn(points, fallback_kitti=True, command="bench engines")
+    engine_list = [Engine(n) for n in names]
+    result = compare_engines(
+        model, turn, engine_list, rounds, precision=precision, progress=progress
+    ).to_dict()
     result |= {"input": source}
     if as_json:
         click.echo(json.dumps(result))
@@ -236,7 +262,7 @@ def bench_engines_cmd(
 
 
 @click.command()
-@points_option(kitti_first=True)
+@points_option(kitti_first=True, fallback="a simulated street scan")
 @device_option()
 @threads_option
 @checkpoint_option("default")
@@ -253,12 +279,16 @@ def bench_refiner_cmd(
     from model.tools.bench import bench_refiner
 
     logging.basicConfig(level=logging.WARNING)
+    progress = Progress("bench refiner")
+    progress(f"loading the model ({checkpoint})")
     model = load_model(None, checkpoint, device, threads).eval()
-    turn, source = load_turn(points, fallback_kitti=True)
+    turn, source = load_turn(points, fallback_kitti=True, command="bench refiner", scene=True)
     try:
-        result = bench_refiner(model, turn, repeats, streams).to_dict() | {"input": source}
+        result = bench_refiner(model, turn, repeats, streams, progress).to_dict() | {"input": source}
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--checkpoint") from e
+    if result["boxes"] == 0:  # nothing was refined: its times would be the cost of doing nothing
+        raise click.ClickException(f"the detector found no boxes in {source}: nothing to time (--points)")
     if as_json:
         click.echo(json.dumps(result))
         return
@@ -293,8 +323,11 @@ def bench_ops_cmd(
     from model.tools.op_count import count_ops
 
     logging.basicConfig(level=logging.WARNING)
+    progress = Progress("bench ops")
+    progress(f"loading the model ({checkpoint or config})")
     model = load_model(config, checkpoint, device)
-    turn, source = load_turn(points, fallback_kitti=True)
+    turn, source = load_turn(points, fallback_kitti=True, command="bench ops")
+    progress("counting the torch ops and host syncs of one streaming step")
     report = count_ops(model.eval(), turn, engine)
     if as_json:
         click.echo(json.dumps(report.to_dict() | {"input": source}))

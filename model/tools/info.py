@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import torch
@@ -40,17 +41,26 @@ def _flops(fn) -> float:
     return counter.get_total_flops() / 1e9
 
 
+def _silent(what: str) -> None:
+    """No progress reports."""
+
+
 @torch.inference_mode()
-def model_info(cfg: PHiMConfig, turn: Tensor) -> ModelInfo:
-    """Counts matmul/conv FLOPs (multiply-add = 2 FLOPs) of real forwards over `turn` (N, C) points.
+def model_info(cfg: PHiMConfig, turn: Tensor, progress: Callable[[str], None] = _silent) -> ModelInfo:
+    """Counts matmul/conv FLOPs (multiply-add = 2 FLOPs) of real forwards over `turn` (N, C) points;
+    `progress` hears of each forward as it starts.
 
     FLOPs of a sparse model depend on occupancy, so the input scan is part of the answer.
     """
+    progress(f"building the {cfg.name} config")
     model = PHiM(cfg).eval()
     sectors = split_turn(turn, cfg.sectors_per_turn)
     turn_layout = StreamLayout.single_stream(len(sectors), model.device)
+    progress(f"encoding the turn ({turn.shape[0]} points, {len(sectors)} sectors): the voxels")
     enc = model.encode(sectors, turn_layout, model.init_states(1))
+    progress("counting the FLOPs of the whole turn in one pass (the slowest part: one counted forward)")
     full = _flops(lambda: model.detect([model.encode(sectors, turn_layout, model.init_states(1)).sectors]))
+    progress("counting the FLOPs of one streaming step (one sector)")
     one = StreamLayout.one_per_item(1, model.device)
     step = _flops(lambda: model.detect([model.encode(sectors[:1], one, model.init_states(1)).sectors]))
     parts = {

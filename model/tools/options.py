@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 from model.config import CONFIGS, Engine, Precision
+from model.data.selection import ClassMap, Split, parse_class_map
 from phim.options import EnumValue
 
 Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
@@ -50,27 +51,52 @@ def checkpoint_option(default: str | None) -> Decorator:
     )
 
 
-def _check_data_spec(ctx: click.Context, param: click.Parameter, spec: str) -> str:
-    """The spec's syntax and, for a folder spec, that the folder holds what its kind needs (usage errors)."""
-    from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
+def data_option(split: Split) -> Decorator:
+    """--data; a folder spec is checked now (syntax, and that the folder holds what its kind needs: usage
+    errors), a custom:DIR folder for `split` (training: ImageSets/train.txt, evaluation: val.txt)."""
 
+    def check(ctx: click.Context, param: click.Parameter, spec: str) -> str:
+        from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
+
+        try:
+            parsed = parse_data_spec(spec)
+            if parsed.kind is not DataKind.SIM:
+                list_scan_paths(parsed, split)
+        except (ValueError, FileNotFoundError) as e:
+            raise click.BadParameter(str(e)) from None
+        return spec
+
+    return click.option(
+        "--data",
+        envvar="PHIM_DATA",
+        default="sim",
+        show_default=True,
+        show_envvar=True,
+        callback=check,
+        help="Data: sim, kitti:DIR, nuscenes:DIR, native:DIR, custom:DIR (OpenPCDet's custom layout; "
+        f"ImageSets/{split.value}.txt when present, else every scan) or samples[:DIR] (the real samples; "
+        "eval only).",
+    )
+
+
+def _parse_class_map(ctx: click.Context, param: click.Parameter, text: str) -> ClassMap:
     try:
-        parsed = parse_data_spec(spec)
-        if parsed.kind is not DataKind.SIM:
-            list_scan_paths(parsed)
-    except (ValueError, FileNotFoundError) as e:
+        return parse_class_map(text)
+    except ValueError as e:
         raise click.BadParameter(str(e)) from None
-    return spec
 
 
-data_option = click.option(
-    "--data",
-    envvar="PHIM_DATA",
-    default="sim",
-    show_default=True,
+class_map_option: Decorator = click.option(
+    "--class-map",
+    "class_map",
+    envvar="PHIM_CLASS_MAP",
+    default="",
     show_envvar=True,
-    callback=_check_data_spec,
-    help="Data: sim, kitti:DIR, nuscenes:DIR, native:DIR or samples[:DIR] (the real samples; eval only).",
+    callback=_parse_class_map,
+    help="custom:DIR only: label class -> VEHICLE, PEDESTRIAN, CYCLIST or IGNORE, e.g. "
+    "'Car=VEHICLE,Truck=VEHICLE,Pedestrian=PEDESTRIAN,Cyclist=CYCLIST,*=IGNORE' (*=IGNORE drops every class "
+    "not named; without it such a class is an error). VEHICLE, PEDESTRIAN, CYCLIST (any case) map to "
+    "themselves.",
 )
 threads_option = click.option(
     "--threads",
@@ -83,10 +109,10 @@ threads_option = click.option(
 )
 
 
-def points_option(kitti_first: bool) -> Decorator:
-    """--points; without it the command runs on KITTI 000000 where present (`kitti_first`), else a synthetic
-    turn (`model.tools.cli.load_turn`)."""
-    default = "KITTI 000000 if present, else a synthetic turn" if kitti_first else "a synthetic turn"
+def points_option(kitti_first: bool, fallback: str = "a synthetic turn") -> Decorator:
+    """--points; without it the command runs on KITTI 000000 where present (`kitti_first`), else on
+    `fallback` (`model.tools.cli.load_turn`)."""
+    default = f"KITTI 000000 if present, else {fallback}" if kitti_first else fallback
     return click.option(
         "--points",
         type=click.Path(exists=True, dir_okay=False, path_type=Path),

@@ -7,7 +7,14 @@ from pathlib import Path
 
 import click
 
-from model.tools.options import config_option, data_option, device_option, threads_option
+from model.data.selection import ClassMap, Split
+from model.tools.options import (
+    class_map_option,
+    config_option,
+    data_option,
+    device_option,
+    threads_option,
+)
 from model.train.loss import LossConfig  # imports torch: `phim train --help` takes about a second
 
 
@@ -20,7 +27,8 @@ def _int(name: str, default: int, minimum: int, help_text: str):
 @click.command()
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Run directory.")
 @config_option("tiny")
-@data_option
+@data_option(Split.TRAIN)
+@class_map_option
 @_int("--steps", 6000, 1, "Optimizer steps (the one-cycle schedule spans them).")
 @_int("--batch-size", 1, 1, "Scans per step and process.")
 @click.option("--lr", type=float, default=3e-3, show_default=True, help="Peak learning rate (one-cycle).")
@@ -67,6 +75,7 @@ def train_cmd(
     out: Path,
     config: str,
     data: str,
+    class_map: ClassMap,
     steps: int,
     batch_size: int,
     lr: float,
@@ -88,6 +97,8 @@ def train_cmd(
     import torch
 
     from model.checkpoint import checkpoint_path
+    from model.data.custom import CustomDataError
+    from model.data.sources import scan_source
     from model.train.loop import TrainConfig, train
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -97,6 +108,7 @@ def train_cmd(
         cfg = TrainConfig(
             config=config,
             data=data,
+            class_map=str(class_map),
             steps=steps,
             batch_size=batch_size,
             lr=lr,
@@ -109,7 +121,11 @@ def train_cmd(
             loss=LossConfig(direction_weight=direction_weight),
             point_features=point_features or 0,
         )
+        scan_source(cfg.data, cfg.seed, classes=class_map)  # custom:DIR: every label file parses
     except ValueError as e:
-        raise click.BadParameter(str(e), param_hint="--data") from None
-    path = train(cfg, out, resume=resume, device=device, progress=progress, max_minutes=max_minutes)
+        raise click.BadParameter(str(e), param_hint="--data / --class-map / --init") from None
+    try:
+        path = train(cfg, out, resume=resume, device=device, progress=progress, max_minutes=max_minutes)
+    except CustomDataError as e:  # a points file found bad when read (NaN, intensity range)
+        raise click.ClickException(str(e)) from None
     click.echo(f"model: {path}")

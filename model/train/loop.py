@@ -28,6 +28,7 @@ from torch import nn
 from model.checkpoint import init_weights, save_checkpoint
 from model.config import POINT_FIELDS, PHiMConfig, get_config
 from model.data.datasets import DataKind, parse_data_spec
+from model.data.selection import ClassMap, parse_class_map
 from model.data.sources import scan_source
 from model.detector import PHiM
 from model.train.data import SampleConfig, SampleStream, TrainSample
@@ -43,7 +44,8 @@ METRICS = ("step", "loss", "heatmap", "reg", "iou_branch", "iou_loss", "mean_iou
 @dataclass(frozen=True)
 class TrainConfig:
     config: str = "tiny"  # model config name
-    data: str = "sim"  # a data spec: sim, kitti:DIR, nuscenes:DIR, native:DIR
+    data: str = "sim"  # a data spec: sim, kitti:DIR, nuscenes:DIR, native:DIR, custom:DIR
+    class_map: str = ""  # custom:DIR: label class -> PHiM class (model.data.selection.parse_class_map)
     steps: int = 6000
     batch_size: int = 1  # scans per step and process
     lr: float = 3e-3  # one-cycle peak
@@ -67,10 +69,13 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.point_features and not 3 <= self.point_features <= len(POINT_FIELDS):
             raise ValueError(f"point_features: {self.point_features}; expected 0 or 3..{len(POINT_FIELDS)}")
-        if parse_data_spec(self.data).kind is DataKind.SAMPLES:
+        kind = parse_data_spec(self.data).kind
+        if parse_class_map(self.class_map) != ClassMap() and kind is not DataKind.CUSTOM:
+            raise ValueError(f"class_map {self.class_map!r}: applies to custom:DIR data only")
+        if kind is DataKind.SAMPLES:
             raise ValueError(
                 f"data {self.data!r}: the real samples' licences allow evaluation only; train on sim or on "
-                "data you may train on (kitti:DIR, nuscenes:DIR, native:DIR)"
+                "data you may train on (kitti:DIR, nuscenes:DIR, native:DIR, custom:DIR)"
             )
 
     def model_config(self) -> PHiMConfig:
@@ -125,14 +130,16 @@ def _loader(cfg: TrainConfig, model: PHiM, dist: Dist, start_step: int) -> torch
     if gts is not None:  # a short run cuts its bank from no more scans than it trains on
         bank_scans = min(gts.bank_scans, cfg.steps * scans_per_step)
         sample = dataclasses.replace(sample, gt_sampling=dataclasses.replace(gts, bank_scans=bank_scans))
+    classes = parse_class_map(cfg.class_map)
     stream = SampleStream(
-        scan_source(cfg.data, cfg.seed),
+        scan_source(cfg.data, cfg.seed, classes=classes),
         model.cfg,
         sample,
         cfg.seed,
         first=dist.rank + start_step * scans_per_step,
         stride=dist.world,
-        bank_at=scan_source(cfg.data, cfg.seed + BANK_STREAM),  # sim: a stream training never reads
+        # sim: a stream training never reads
+        bank_at=scan_source(cfg.data, cfg.seed + BANK_STREAM, classes=classes),
         paste_before=0 if gts is None else int(cfg.steps * gts.fade) * scans_per_step,
     )
     return torch.utils.data.DataLoader(

@@ -1,9 +1,9 @@
-"""Targets: VEHICLE (sedans, hatchbacks/SUVs, pickups, trucks and buses, with rear lights), PEDESTRIAN
-(legs and feet, a torso leaning forward, head, sometimes a backpack), CYCLIST (bicycle with a handlebar +
-a rider leaning to it). Candidates are drawn densely along lanes and sidewalks, then a configured number is
-kept inside the placement radius (and a few beyond it), skipping any that would overlap what is placed.
+"""Targets: VEHICLE (body types in vehicles.py), PEDESTRIAN and CYCLIST (people.py). Candidates are drawn
+densely along lanes and sidewalks, then a configured number is kept inside the placement radius (and a few
+beyond it), skipping any that would overlap what is placed.
 
-A label box is (x, y, z, l, w, h, yaw) with z the box centre; the solids of an object lie inside its box.
+A label box is (x, y, z, l, w, h, yaw) with z the box centre; the solids of an object lie inside its box and
+reach its faces (a tight box, as annotators draw them), occluded parts included.
 """
 
 from __future__ import annotations
@@ -13,28 +13,40 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model.data.sim import stats
+from model.data.sim import people, stats, vehicles
 from model.data.sim.clutter import sidewalk_spot
 from model.data.sim.ground import Ground
 from model.data.sim.layout import Occupancy, Road, crossing_span, footprint
 from model.data.sim.parts import Obstacles
-from model.data.sim.raycast import Num, SolidList
+from model.data.sim.raycast import SolidList
 
-PAINT = np.array([0.06, 0.12, 0.25, 0.35, 0.5, 0.7])  # car paint reflectivities: black .. white
-SEDAN, HATCHBACK, PICKUP = 0, 1, 2  # car body shapes (hatchback stands for SUVs and vans too)
-CAR_SHAPES = (0.35, 0.5, 0.15)  # their shares of cars
-CABIN_BEHIND = ((0.17, 0.25), (0.02, 0.06), (0.3, 0.4))  # what follows the cabin (boot, hatch, bed) / length
-TRUCK_SHARE = 0.6  # of large vehicles; the rest are buses
-LIGHT_DEPTH = 0.02  # metres: the rear lights fill the back of the label box, the body ends in front of them
-BACKPACK_SHARE = 0.35  # of pedestrians
 ROW_BREAK = 0.12  # chance that a parked row breaks after a car (a driveway, a hydrant, an empty stretch)
 ROW_BREAK_M = (4.0, 20.0)  # length of such a break
+TURNING = 0.1  # chance that a moving vehicle is turning or changing lanes: heading off its lane's
+TURN_RAD = (0.15, 0.7)  # by this much, either way
+TRAILERS = (0.3, 2)  # chance that a scene has small trailers parked at the curb, and at most how many
+TRAILER_SIZE = ((2.6, 1.3, 0.75), (4.2, 2.0, 1.3))  # label-free (l, w, h) range, drawbar included
 
 
 @dataclass(frozen=True)
 class Candidates:
     boxes: np.ndarray  # (K, 7) label boxes
-    large: np.ndarray  # (K,) bool: a truck or bus (vehicles only)
+    large: np.ndarray  # (K,) bool: a truck, bus or trailer (vehicles only)
+    kind: np.ndarray | None = None  # (K,) int64 body type (stats.SEDAN ..), what a pedestrian carries
+    # (people.PLAIN ..) or a cyclist's vehicle (people.BICYCLE ..); None: drawn when the solids are built
+    space: np.ndarray | None = None  # (K, 7) boxes that must stay free for them (None: the label boxes),
+    # larger where an object has something unlabelled with it (a stroller)
+
+    def take(self, idx: np.ndarray) -> Candidates:
+        pick = [None if a is None else a[idx] for a in (self.kind, self.space)]
+        return Candidates(self.boxes[idx], self.large[idx], *pick)
+
+    @staticmethod
+    def join(parts: list[Candidates]) -> Candidates:
+        """Candidates that all carry kinds, as one."""
+        cat = [np.concatenate(a) for a in zip(*((c.boxes, c.large, c.kind) for c in parts), strict=True)]
+        space = [c.boxes if c.space is None else c.space for c in parts]
+        return Candidates(*cat, np.concatenate(space))
 
 
 def _lanes(road: Road) -> list[tuple[float, float, bool]]:
@@ -54,13 +66,14 @@ def vehicle_candidates(
     rng: np.random.Generator, roads: list[Road], ground: Ground, reach: float
 ) -> Candidates:
     """Queues of vehicles filling every lane of every road (parked queues tight, moving ones looser)."""
-    boxes, large = [], []
+    boxes, large, kinds = [], [], []
     for i, road in enumerate(roads):
         others = [r for j, r in enumerate(roads) if j != i]
         for lateral, heading, parked in _lanes(road):
             n = int(2 * reach / 3.5) + 1
             big = rng.random(n) < stats.LARGE_VEHICLE_FRACTION
-            size = np.where(big[:, None], stats.LARGE_VEHICLE.draw(rng, n), stats.CAR.draw(rng, n))  # (n, 3)
+            kind = vehicles.body_kinds(rng, big, trailers=parked)  # semi-trailers stand parked
+            size = body_sizes(rng, kind)  # (n, 3)
             room = road.parking_width + 0.3 if parked else road.lane_width - 0.3
             size[:, 1] = np.minimum(size[:, 1], room)
             gap = rng.uniform(*(stats.PARKED_GAP_M if parked else stats.MOVING_GAP_M), n)
@@ -69,6 +82,9 @@ def vehicle_candidates(
             s = -reach + rng.uniform(0, 5) + np.cumsum(size[:, 0] + gap) - size[:, 0] / 2  # (n,) centres
             xy = road.point(s, np.full(n, lateral))  # (n, 2)
             yaw = heading + rng.normal(0, 0.05 if parked else 0.03, n)
+            if not parked:
+                turn = (rng.random(n) < TURNING) * rng.uniform(*TURN_RAD, n) * rng.choice([-1.0, 1.0], n)
+                yaw += turn
             corners = footprint(xy, size[:, 0], size[:, 1], yaw)  # (n, 4, 2)
             margin = 5.0 if parked else 0.0  # no parking near a crossing; cross traffic waits outside it
             keep = (s < reach) & ~np.any(
@@ -77,17 +93,53 @@ def vehicle_candidates(
             z = ground.height_at(xy[:, 0], xy[:, 1]) + size[:, 2] / 2
             boxes.append(np.column_stack([xy, z, size, yaw])[keep])
             large.append(big[keep])
-    return Candidates(np.concatenate(boxes), np.concatenate(large))
+            kinds.append(kind[keep])
+    return Candidates(np.concatenate(boxes), np.concatenate(large), np.concatenate(kinds))
+
+
+def parked_trailers(
+    rng: np.random.Generator,
+    roads: list[Road],
+    ground: Ground,
+    occ: Occupancy,
+    reach: float,
+    obstacles: Obstacles,
+) -> np.ndarray:
+    """Small trailers parked in parking lanes (hard negatives, not labelled) -> their boxes (K, 7), placed."""
+    if rng.random() >= TRAILERS[0]:
+        return np.zeros((0, 7))
+    lanes = [(road, lat, yaw) for road in roads for lat, yaw, parked in _lanes(road) if parked]
+    if not lanes:
+        return np.zeros((0, 7))
+    n = 10
+    pick = rng.integers(len(lanes), size=n)
+    size = rng.uniform(*TRAILER_SIZE, (n, 3))
+    boxes = []
+    for i in range(n):
+        road, lateral, yaw = lanes[pick[i]]
+        xy = road.point(np.array([rng.uniform(-reach, reach)]), np.array([lateral]))[0]
+        z = float(ground.height_at(xy[None, 0], xy[None, 1])[0]) + size[i, 2] / 2
+        boxes.append([*xy, z, *size[i], yaw + rng.choice([0.0, math.pi])])
+    cands = Candidates(np.asarray(boxes), np.zeros(n, bool))
+    count = int(rng.integers(1, TRAILERS[1] + 1))
+    return select(rng, cands, occ, count, 0, reach, reach, obstacles).boxes
+
+
+def body_sizes(rng: np.random.Generator, kind: np.ndarray) -> np.ndarray:
+    """(K,) body types -> (K, 3) label sizes drawn from their `stats.BODY_SIZES`."""
+    every = np.stack([s.draw(rng, len(kind)) for s in stats.BODY_SIZES])  # (types, K, 3)
+    return every[kind, np.arange(len(kind))]
 
 
 def driveway_candidates(rng: np.random.Generator, slots: np.ndarray) -> Candidates:
     """Cars parked in driveways: slots (K, 5) x, y, ground z, heading, room -> one car per slot that fits,
     facing the house or the street."""
-    size = stats.CAR.draw(rng, len(slots))  # (K, 3)
+    kind = vehicles.body_kinds(rng, np.zeros(len(slots), bool))
+    size = body_sizes(rng, kind)  # (K, 3)
     fits = size[:, 0] <= slots[:, 4]
     yaw = slots[:, 3] + np.where(rng.random(len(slots)) < 0.5, 0.0, math.pi)
     boxes = np.column_stack([slots[:, :2], slots[:, 2] + size[:, 2] / 2, size, yaw])[fits]
-    return Candidates(boxes, np.zeros(len(boxes), bool))
+    return Candidates(boxes, np.zeros(len(boxes), bool), kind[fits])
 
 
 def _crossing(
@@ -110,9 +162,9 @@ def pedestrian_candidates(
     rng: np.random.Generator, roads: list[Road], ground: Ground, reach: float, n: int
 ) -> Candidates:
     """`n` tries: walkers and standing groups of 1-3 on the sidewalks, about one in ten crossing a road."""
-    boxes = []
+    boxes, carries = [], []
     for _ in range(n):
-        size = stats.PEDESTRIAN.draw(rng, 3)  # (3, 3)
+        size, carry = people.pedestrian_sizes(rng, 4)  # (4, 3), (4,)
         if rng.random() < 0.1:
             xy, base, heading, line_up = _crossing(rng, roads, ground, reach)
         else:
@@ -122,23 +174,31 @@ def pedestrian_candidates(
             xy, base, line_up = spot.xy, spot.z, spot.yaw
             heading = spot.yaw + (math.pi if rng.random() < 0.5 else 0.0)
             heading = heading if rng.random() < 0.8 else rng.uniform(-math.pi, math.pi)  # standing
-        members = int(rng.choice([1, 2, 3], p=[0.6, 0.3, 0.1]))
+        members = int(rng.choice([1, 2, 3, 4], p=[0.55, 0.3, 0.1, 0.05]))
         step = stats.GROUP_SPACING_M * np.array([math.cos(line_up), math.sin(line_up)])
         for m in range(members):
             c = xy + step * m
             yaw = heading + rng.normal(0, 0.15)
             boxes.append([c[0], c[1], base + size[m, 2] / 2, *size[m], yaw])
+            carries.append(carry[m])
     boxes_arr = np.asarray(boxes, np.float64).reshape(-1, 7)
-    return Candidates(boxes_arr, np.zeros(len(boxes_arr), bool))
+    carry_arr = np.asarray(carries, np.int64)
+    space = boxes_arr.copy()  # a stroller goes ahead of its pedestrian's box
+    pushing = carry_arr == people.STROLLER
+    grow = 1.0
+    space[pushing, :2] += grow / 2 * np.column_stack([np.cos(space[pushing, 6]), np.sin(space[pushing, 6])])
+    space[pushing, 3] += grow
+    return Candidates(boxes_arr, np.zeros(len(boxes_arr), bool), carry_arr, space)
 
 
 def cyclist_candidates(
     rng: np.random.Generator, roads: list[Road], ground: Ground, reach: float, n: int
 ) -> Candidates:
     """`n` tries: riders near the right edge of the outer lanes, one in four on a sidewalk."""
-    boxes = []
+    boxes, kinds = [], []
     for _ in range(n):
-        size = stats.CYCLIST.draw(rng, 1)[0]  # (3,)
+        sizes, kind = people.cyclist_sizes(rng, 1)
+        size = sizes[0]  # (3,)
         if rng.random() < 0.25:
             spot = sidewalk_spot(rng, roads, ground, reach, (0.2, 0.8))
             if spot is None:
@@ -152,8 +212,9 @@ def cyclist_candidates(
             base = float(ground.height_at(xy[None, 0], xy[None, 1])[0])
             heading = road.yaw + (0.0 if side < 0 else math.pi)
         boxes.append([xy[0], xy[1], base + size[2] / 2, *size, heading + rng.normal(0, 0.05)])
+        kinds.append(kind[0])
     boxes_arr = np.asarray(boxes, np.float64).reshape(-1, 7)
-    return Candidates(boxes_arr, np.zeros(len(boxes_arr), bool))
+    return Candidates(boxes_arr, np.zeros(len(boxes_arr), bool), np.asarray(kinds, np.int64))
 
 
 def discs(box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,161 +242,35 @@ def select(
     ones take their place."""
     order = rng.permutation(len(cands.boxes))
     dist = np.hypot(cands.boxes[:, 0], cands.boxes[:, 1])
+    space = cands.boxes if cands.space is None else cands.space
     keep, room = [], {True: inside, False: outside}
     for i in order:
         near = bool(dist[i] <= radius)
         if room[near] == 0 or dist[i] > reach:
             continue
-        xy, r = discs(cands.boxes[i])
-        if occ.free(xy, r) and (obstacles is None or obstacles.clear(cands.boxes[i])):
+        xy, r = discs(space[i])
+        if occ.free(xy, r) and (obstacles is None or obstacles.clear(space[i])):
             occ.take(xy, r)
             keep.append(i)
             room[near] -= 1
-    idx = np.asarray(keep, np.int64)
-    return Candidates(cands.boxes[idx], cands.large[idx])
-
-
-def _offset(boxes: np.ndarray, along: Num, across: Num = 0.0) -> np.ndarray:
-    """(K, 7) boxes, metres along each heading and to its left (scalars or (K,)) -> (K, 2) points."""
-    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
-    return boxes[:, :2] + np.stack([along * c - across * s, along * s + across * c], 1)
-
-
-def _segment(
-    solids: SolidList,
-    boxes: np.ndarray,
-    span: tuple[Num, Num],
-    z: tuple[Num, Num],
-    width: Num,
-    refl: Num,
-    porosity: float = 0.0,
-    across: Num = 0.0,
-) -> None:
-    """One solid per object, from span[1] to span[0] metres along its heading (front > rear)."""
-    front, rear = span
-    centre = _offset(boxes, (np.asarray(front) + rear) / 2, across)
-    solids.boxes(centre, z[0], z[1], np.asarray(front) - rear, width, boxes[:, 6], refl, porosity)
+    return cands.take(np.asarray(keep, np.int64))
 
 
 def vehicle_solids(solids: SolidList, rng: np.random.Generator, cands: Candidates) -> None:
-    """Every vehicle: axles with wheels under the body and retroreflective rear lights; cars as sedans,
-    hatchbacks/SUVs or pickups, large vehicles as trucks (cab + cargo box) or buses (docs/simulator.md)."""
-    b, k = cands.boxes, len(cands.boxes)
-    base, length, w, _, _ = _parts(b)
-    clear = np.where(cands.large, rng.uniform(0.4, 0.6, k), rng.uniform(0.18, 0.3, k))
-    paint = rng.choice(PAINT, k) * rng.uniform(0.8, 1.2, k)
-    for sign in (-1.0, 1.0):  # axles with their wheels, seen through the gap under the body
-        axle = _offset(b, sign * (length / 2 - np.minimum(0.9, length * 0.2)))
-        solids.boxes(axle, base, base + clear + 0.05, 0.65, w * 0.96, b[:, 6], rng.uniform(0.03, 0.08, k))
-    light_z = base + clear + np.where(cands.large, 0.5, rng.uniform(0.35, 0.55, k))
-    lights = (-length / 2 + LIGHT_DEPTH, -length / 2)
-    for side in (-1.0, 1.0):  # tail lights with their retroreflectors, at the back corners: saturated returns
-        height = (light_z - 0.08, light_z + 0.08)
-        _segment(solids, b, lights, height, 0.3, 1.0, across=side * (w / 2 - 0.2))
-    car = ~cands.large
-    _car_solids(solids, rng, b[car], clear[car], paint[car])
-    _large_solids(solids, rng, b[cands.large], clear[cands.large], paint[cands.large])
+    """Every vehicle of `cands` as its body type (drawn when not given: cars, box trucks or buses)."""
+    kind = vehicles.body_kinds(rng, cands.large, trailers=False) if cands.kind is None else cands.kind
+    vehicles.vehicle_solids(solids, rng, cands.boxes, kind)
 
 
-def _car_solids(
-    solids: SolidList, rng: np.random.Generator, b: np.ndarray, clear: np.ndarray, paint: np.ndarray
+def pedestrian_solids(
+    solids: SolidList, rng: np.random.Generator, boxes: np.ndarray, carry: np.ndarray | None = None
 ) -> None:
-    """A bonnet lower than the rest of the body, a glass cabin with a raked windscreen that ends above a
-    boot (sedan), near the back (hatchback, SUV, van) or before an open bed (pickup)."""
-    k = len(b)
-    base, length, w, h, _ = _parts(b)
-    half, back = length / 2, -length / 2 + LIGHT_DEPTH
-    shape = rng.choice(len(CAR_SHAPES), k, p=CAR_SHAPES)
-    body_top = base + h * rng.uniform(0.5, 0.6, k)
-    windscreen = half - length * rng.uniform(0.24, 0.32, k)  # where the bonnet ends
-    boot = length * np.choose(shape, [rng.uniform(*CABIN_BEHIND[s], k) for s in range(len(CAR_SHAPES))])
-    pickup = shape == PICKUP
-    _segment(solids, b, (half, windscreen), (base + clear, body_top - rng.uniform(0.03, 0.12, k)), w, paint)
-    body_end = np.where(pickup, -half + boot, back)
-    _segment(solids, b, (windscreen, body_end), (base + clear, body_top), w, paint)
-    sill = (body_top + base + h) / 2  # the windscreen leans back from the bonnet to the roof
-    glass = rng.uniform(0.05, 0.15, k)
-    cabin_end = -half + np.where(pickup, boot + 0.1, boot)
-    _segment(solids, b, (windscreen, cabin_end), (body_top, sill), w * 0.88, glass, 0.25)
-    roof = (windscreen - rng.uniform(0.3, 0.6, k), cabin_end)
-    _segment(solids, b, roof, (sill, base + h), w * 0.88, glass, 0.25)
-    _bed(solids, b[pickup], (-half + boot)[pickup], clear[pickup], body_top[pickup], paint[pickup])
+    """Every pedestrian (people.pedestrian_solids)."""
+    people.pedestrian_solids(solids, rng, boxes, carry)
 
 
-def _bed(
-    solids: SolidList, b: np.ndarray, front: np.ndarray, clear: np.ndarray, top: np.ndarray, paint: np.ndarray
+def cyclist_solids(
+    solids: SolidList, rng: np.random.Generator, boxes: np.ndarray, kind: np.ndarray | None = None
 ) -> None:
-    """A pickup's open bed from `front` to the back: a floor well below the sides, two side walls and a
-    tailgate."""
-    base, length, w, _, _ = _parts(b)
-    back = -length / 2 + LIGHT_DEPTH
-    floor = np.maximum(base + clear + 0.1, top - 0.45)
-    _segment(solids, b, (front, back), (base + clear, floor), w, paint)
-    for side in (-1.0, 1.0):
-        _segment(solids, b, (front, back), (floor, top), 0.08, paint, across=side * (w / 2 - 0.04))
-    _segment(solids, b, (back + 0.06, back), (floor, top), w, paint)
-
-
-def _large_solids(
-    solids: SolidList, rng: np.random.Generator, b: np.ndarray, clear: np.ndarray, paint: np.ndarray
-) -> None:
-    """Trucks: a cab lower than the cargo box behind it; buses: one box."""
-    k = len(b)
-    base, length, w, h, _ = _parts(b)
-    half, back = length / 2, -length / 2 + LIGHT_DEPTH
-    t = rng.random(k) < TRUCK_SHARE  # trucks; the rest are buses
-    cab_end = half - np.minimum(2.4, 0.3 * length)
-    cab_top = base + h * rng.uniform(0.7, 0.85, k)
-    _segment(solids, b[t], (half[t], cab_end[t]), (base[t] + clear[t], cab_top[t]), w[t] * 0.96, paint[t])
-    cargo_front = np.where(t, cab_end - 0.2, half)
-    _segment(solids, b, (cargo_front, back), (base + clear, base + h), w, paint)
-
-
-def _parts(boxes: np.ndarray) -> tuple[np.ndarray, ...]:
-    """(K, 7) boxes -> (K,) each: bottom z, length, width, height, yaw."""
-    return boxes[:, 2] - boxes[:, 5] / 2, boxes[:, 3], boxes[:, 4], boxes[:, 5], boxes[:, 6]
-
-
-def pedestrian_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray) -> None:
-    """Legs (one cylinder) with the feet pointing ahead, a torso across the heading whose chest leans
-    forward over the hips, the head ahead of the shoulders; 35 % carry a backpack."""
-    k = len(boxes)
-    base, length, w, h, _ = _parts(boxes)
-    half = length / 2
-    clothes = rng.uniform(0.05, 0.5, k)
-    legs = np.minimum(rng.uniform(0.13, 0.18, k), np.minimum(length, w) / 2)
-    solids.cylinders(boxes[:, :2], base, base + 0.47 * h, legs, clothes * rng.uniform(0.7, 1.0, k))
-    toes = np.minimum(legs + rng.uniform(0.08, 0.14, k), half)
-    _segment(solids, boxes, (toes, -0.08), (base, base + 0.09), np.minimum(0.3, w), rng.uniform(0.05, 0.3, k))
-    torso_l, torso_w = np.minimum(rng.uniform(0.22, 0.3, k), length), np.minimum(rng.uniform(0.4, 0.5, k), w)
-    lean = np.minimum(rng.uniform(0.04, 0.1, k), half - torso_l / 2)  # of the chest over the hips
-    waist, shoulders = base + 0.62 * h, base + 0.84 * h
-    _segment(solids, boxes, (torso_l / 2, -torso_l / 2), (base + 0.47 * h, waist), torso_w, clothes)
-    _segment(solids, boxes, (lean + torso_l / 2, lean - torso_l / 2), (waist, shoulders), torso_w, clothes)
-    head = _offset(boxes, np.minimum(lean + 0.05, half - 0.1))
-    solids.cylinders(head, shoulders, base + h, 0.1, rng.uniform(0.2, 0.4, k))
-    bag = rng.random(k) < BACKPACK_SHARE
-    rear = (lean - torso_l / 2)[bag]  # the backpack hangs on the back of the chest
-    depth = np.minimum(rng.uniform(0.12, 0.2, bag.sum()), rear + half[bag])
-    height = (waist[bag] - 0.05, shoulders[bag] - 0.05)
-    _segment(solids, boxes[bag], (rear, rear - depth), height, 0.3, rng.uniform(0.1, 0.5, bag.sum()))
-
-
-def cyclist_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray) -> None:
-    """A bicycle (thin, mostly see-through plate up to 1 m) with a handlebar across its front, and a rider
-    leaning forward: legs, hips over the saddle behind the middle, chest ahead of them, arms reaching to the
-    handlebar, the head ahead of the chest."""
-    k = len(boxes)
-    base, length, w, h, yaw = _parts(boxes)
-    solids.boxes(boxes[:, :2], base, base + 1.0, length * 0.95, 0.12, yaw, rng.uniform(0.3, 0.6, k), 0.5)
-    bar, grip = 0.3 * length, base + rng.uniform(0.95, 1.1, k)
-    _segment(solids, boxes, (bar + 0.04, bar - 0.04), (grip - 0.04, grip), np.minimum(0.6, w), 0.4)
-    clothes = rng.uniform(0.05, 0.5, k)
-    solids.cylinders(boxes[:, :2], base + 0.45, base + 1.0, 0.12, clothes)
-    torso_w = np.minimum(rng.uniform(0.4, 0.5, k), w)
-    waist, shoulders = base + 1.2, base + h - 0.27
-    _segment(solids, boxes, (-0.02 * length, -0.2 * length), (base + 1.0, waist), torso_w, clothes)
-    _segment(solids, boxes, (0.08 * length, -0.1 * length), (waist, shoulders), torso_w, clothes)
-    _segment(solids, boxes, (bar, 0.08 * length), (grip, shoulders - 0.1), torso_w, clothes, 0.6)  # arms
-    head = _offset(boxes, 0.1 * length)
-    solids.cylinders(head, shoulders, base + h, 0.1, rng.uniform(0.2, 0.4, k))
+    """Every cyclist (people.cyclist_solids)."""
+    people.cyclist_solids(solids, rng, boxes, kind)

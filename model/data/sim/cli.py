@@ -141,9 +141,24 @@ def compare_cmd(
         real_clouds,
         sim_clouds,
     )
+    from phim.progress import Progress, note
 
     root = SAMPLES_DIR if samples is None else samples
-    click.echo(format_tables(compare(sensors or tuple(REAL_FOR), seeds, root)))
+    chosen = sensors or tuple(REAL_FOR)
+    missing = [REAL[REAL_FOR[s]].folder for s in chosen if s in REAL_FOR]
+    missing = [folder for folder in missing if not (root / folder).is_dir()]
+    if missing and samples is not None:  # asked for these samples: they must be there
+        raise click.BadParameter(f"{root}: no {', '.join(missing)} in it", param_hint="--samples")
+    if missing:
+        note(
+            "sim compare",
+            f"the real samples are not all in {root} (PHIM_SAMPLES_DIR; README, Quick start): no real rows "
+            f"for {', '.join(missing)}, simulated rows only there",
+        )
+    Progress("sim compare")(
+        f"simulating {seeds} scans per sensor ({len(chosen)} sensors) and reading the real ones"
+    )
+    click.echo(format_tables(compare(chosen, seeds, root)))
     if png is not None:
         real = real_clouds(RealSet.KITTI, root)[png_frame]
         sim = sim_clouds(REAL[RealSet.KITTI].sim, range(png_seed, png_seed + 1))[0]

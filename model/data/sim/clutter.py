@@ -1,5 +1,6 @@
-"""Static street furniture and vegetation on the sidewalks. Several pieces are the size of a pedestrian or
-a parked bicycle (bins, bushes, bollards, sign boards, bicycles without a rider): hard negatives."""
+"""Static street furniture and vegetation on the sidewalks. Several pieces are the size and shape of a
+pedestrian, a cyclist or part of a car (posts, bins, bushes, bollards, sign boards, bare trunks, advertising
+columns, low walls, road barriers, bicycles without a rider): hard negatives."""
 
 from __future__ import annotations
 
@@ -107,6 +108,51 @@ def _bicycle(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> f
     return 1.0
 
 
+def _post(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
+    """A post of a person's height and girth (a parking meter, a pillar, a short lamp)."""
+    r = rng.uniform(0.06, 0.16)
+    solids.cylinders(spot.xy, spot.z - 0.1, spot.z + rng.uniform(1.0, 1.9), r, rng.uniform(0.2, 0.6))
+    return r + 0.1
+
+
+def _trunk(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
+    """A bare or pollarded tree trunk, with a small knot of branches at the top."""
+    r, top = rng.uniform(0.12, 0.3), spot.z + rng.uniform(2.0, 4.0)
+    solids.cylinders(spot.xy, spot.z - 0.1, top, r, rng.uniform(*vegetation.BARK))
+    solids.cylinders(spot.xy, top, top + rng.uniform(0.3, 0.8), r * 2.5, rng.uniform(0.2, 0.4), 0.8)
+    return r * 2.5
+
+
+def _column(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
+    """An advertising column or a utility cabinet."""
+    if rng.random() < 0.5:
+        r = rng.uniform(0.5, 0.7)
+        solids.cylinders(spot.xy, spot.z - 0.1, spot.z + rng.uniform(2.5, 3.2), r, rng.uniform(0.3, 0.7))
+        return r
+    length, width = rng.uniform(0.6, 1.2), rng.uniform(0.3, 0.5)
+    top = spot.z + rng.uniform(1.0, 1.6)
+    solids.boxes(spot.xy, spot.z - 0.05, top, length, width, spot.yaw, rng.uniform(0.2, 0.6))
+    return length / 2 + 0.1
+
+
+def _wall(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
+    """A low wall or planter along the road, car-bonnet high."""
+    length = rng.uniform(1.5, 4.0)
+    top = spot.z + rng.uniform(0.4, 1.0)
+    solids.boxes(spot.xy, spot.z - 0.05, top, length, rng.uniform(0.2, 0.4), spot.yaw, rng.uniform(0.2, 0.5))
+    return length / 2
+
+
+def _barrier(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
+    """A road barrier at the curb: a plank with retroreflective stripes on two legs."""
+    length = rng.uniform(1.2, 2.5)
+    solids.boxes(spot.xy, spot.z + 0.7, spot.z + 1.0, length, 0.05, spot.yaw, 0.95)
+    for end in (-1.0, 1.0):
+        leg = spot.xy + end * (length / 2 - 0.1) * np.array([math.cos(spot.yaw), math.sin(spot.yaw)])
+        solids.boxes(leg, spot.z, spot.z + 0.7, 0.1, 0.5, spot.yaw, 0.3)
+    return length / 2
+
+
 # (name, placement band across the sidewalk, relative frequency, builder returning its footprint radius)
 KINDS: tuple[tuple[str, tuple[float, float], float, Callable[..., float]], ...] = (
     ("pole", (0.0, 0.1), 0.15, _pole),
@@ -118,6 +164,11 @@ KINDS: tuple[tuple[str, tuple[float, float], float, Callable[..., float]], ...] 
     ("bush", (0.7, 1.0), 0.15, _bush),
     ("board", (0.3, 1.0), 0.10, _board),
     ("bicycle", (0.7, 1.0), 0.10, _bicycle),
+    ("post", (0.0, 0.3), 0.10, _post),
+    ("trunk", (0.0, 0.15), 0.05, _trunk),
+    ("column", (0.4, 1.0), 0.03, _column),
+    ("wall", (0.8, 1.0), 0.04, _wall),
+    ("barrier", (0.0, 0.1), 0.03, _barrier),
 )
 
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model.data.sim.raycast import BOX, CYLINDER, Num, SolidList, Solids
+from model.data.sim.raycast import BOX, CYLINDER, Num, SolidList, Solids, material_of
 
 SLAB, BUILDING, WINDOW, INTERIOR, VEGETATION, FENCE, FURNITURE, TARGET = range(8)
 TAG_NAMES = ("slab", "building", "window", "interior", "vegetation", "fence", "furniture", "target")
@@ -31,13 +31,14 @@ class TaggedSolidList(SolidList):
         self._tags: list[np.ndarray] = []
         self._pending: dict[int, list[tuple[np.ndarray, ...]]] = {BOX: [], CYLINDER: []}
 
-    def _queue(self, kind: int, centre: np.ndarray, values: tuple[Num, ...]) -> None:
+    def _queue(self, kind: int, centre: np.ndarray, values: tuple[Num, ...], material: Num | None) -> None:
         c = np.asarray(centre, np.float64).reshape(-1, 2)  # (K, 2)
         n = len(c)
         cols = tuple(
             np.full(n, v, np.float64) if np.ndim(v) == 0 else np.asarray(v, np.float64) for v in values
         )
-        self._pending[kind].append((c, *cols, np.full(n, self.tag, np.int8)))
+        mat = material_of(cols[-1], material)  # the last value is the porosity
+        self._pending[kind].append((c, *cols, mat, np.full(n, self.tag, np.int8)))
 
     def boxes(
         self,
@@ -49,13 +50,21 @@ class TaggedSolidList(SolidList):
         yaw: Num,
         refl: Num,
         porosity: Num = 0.0,
+        material: Num | None = None,
     ) -> None:
-        self._queue(BOX, centre, (z0, z1, length, width, yaw, refl, porosity))
+        self._queue(BOX, centre, (z0, z1, length, width, yaw, refl, porosity), material)
 
     def cylinders(
-        self, centre: np.ndarray, z0: Num, z1: Num, radius: Num, refl: Num, porosity: Num = 0.0
+        self,
+        centre: np.ndarray,
+        z0: Num,
+        z1: Num,
+        radius: Num,
+        refl: Num,
+        porosity: Num = 0.0,
+        material: Num | None = None,
     ) -> None:
-        self._queue(CYLINDER, centre, (z0, z1, radius, refl, porosity))
+        self._queue(CYLINDER, centre, (z0, z1, radius, refl, porosity), material)
 
     def _flush(self) -> None:
         for kind, add in ((BOX, super().boxes), (CYLINDER, super().cylinders)):

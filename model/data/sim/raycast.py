@@ -16,6 +16,10 @@ from functools import cached_property
 import numpy as np
 
 BOX, CYLINDER = 0, 1
+# what a ray does at a porous solid's surface (`Solids.material`): OPAQUE solids stop every ray; a ray that a
+# VOLUME solid (foliage) stops returns from a leaf inside it; a SURFACE solid (glass, a wire mesh, spokes)
+# lets rays through at random and returns from its face
+OPAQUE, VOLUME, SURFACE = 0, 1, 2
 # a porous solid (foliage) returns from a leaf at a random depth inside it, exponential with this mean (m),
 # as real crowns and hedges give a volume of returns rather than a surface
 VOLUME_DEPTH = 0.4
@@ -32,6 +36,7 @@ class Solids:
     yaw: np.ndarray  # (P,) float64 box heading (cylinder: 0)
     reflectivity: np.ndarray  # (P,) float64 in [0, 1]
     porosity: np.ndarray  # (P,) float64 chance that a ray passes through (foliage, spokes, glass)
+    material: np.ndarray  # (P,) int8 OPAQUE, VOLUME or SURFACE
 
     def __len__(self) -> int:
         return int(self.kind.shape[0])
@@ -254,7 +259,7 @@ def cast_solids(s: Solids, rays: Rays, range_min: float, rng: np.random.Generato
     keep = np.flatnonzero(hit)[rng.random(len(porous)) >= porous]  # (H0,)
     ray = f[keep] * len(rays.elevation) + b[keep]
     t = t_in[keep]
-    inside = np.flatnonzero(s.porosity[solid[keep]] > 0)  # foliage: the leaf a ray meets lies inside
+    inside = np.flatnonzero(s.material[solid[keep]] == VOLUME)  # foliage: the leaf a ray meets lies inside
     depth = rng.exponential(VOLUME_DEPTH, len(inside)).astype(np.float32)
     t[inside] += np.minimum(depth, t_out[keep][inside] - t[inside])
     return nearest(ray, t, cos[keep], solid[keep], rays.count)
@@ -275,6 +280,13 @@ def nearest(ray: np.ndarray, t: np.ndarray, cos: np.ndarray, solid: np.ndarray, 
 Num = float | np.ndarray  # a scalar, or one value per solid of a batch
 
 
+def material_of(porosity: np.ndarray, material: Num | None) -> np.ndarray:
+    """(K,) porosity, a material (scalar, (K,) or None: VOLUME where porous, else OPAQUE) -> (K,) int8."""
+    if material is None:
+        return np.where(porosity > 0, VOLUME, OPAQUE).astype(np.int8)
+    return np.broadcast_to(np.asarray(material, np.int8), porosity.shape).copy()
+
+
 class SolidList:
     """Collects solids in batches (values broadcast to one per solid), then builds `Solids`."""
 
@@ -290,12 +302,14 @@ class SolidList:
         yaw: Num,
         refl: Num,
         porosity: Num,
+        material: Num | None,
     ) -> None:
         centre = np.asarray(centre, np.float64).reshape(-1, 2)  # (K, 2)
         n = len(centre)
         col = [np.broadcast_to(np.asarray(a, np.float64), (n,)) for a in (*z, *half, yaw, refl, porosity)]
         kinds = np.full(n, kind, np.int8)
-        self._parts.append((kinds, centre, np.stack(col[:2], 1), np.stack(col[2:4], 1), *col[4:]))
+        mat = material_of(col[-1], material)
+        self._parts.append((kinds, centre, np.stack(col[:2], 1), np.stack(col[2:4], 1), *col[4:], mat))
 
     def boxes(
         self,
@@ -307,19 +321,29 @@ class SolidList:
         yaw: Num,
         refl: Num,
         porosity: Num = 0.0,
+        material: Num | None = None,
     ) -> None:
-        """(K, 2) centres; bottom, top, length, width, heading, reflectivity, porosity: scalars or (K,)."""
+        """(K, 2) centres; bottom, top, length, width, heading, reflectivity, porosity, material: scalars or
+        (K,); material None: VOLUME where porous, else OPAQUE."""
         half = (np.asarray(length) / 2, np.asarray(width) / 2)
-        self._add(BOX, centre, (z0, z1), half, yaw, refl, porosity)
+        self._add(BOX, centre, (z0, z1), half, yaw, refl, porosity, material)
 
     def cylinders(
-        self, centre: np.ndarray, z0: Num, z1: Num, radius: Num, refl: Num, porosity: Num = 0.0
+        self,
+        centre: np.ndarray,
+        z0: Num,
+        z1: Num,
+        radius: Num,
+        refl: Num,
+        porosity: Num = 0.0,
+        material: Num | None = None,
     ) -> None:
-        """(K, 2) centres; bottom, top, radius, reflectivity, porosity: scalars or (K,)."""
-        self._add(CYLINDER, centre, (z0, z1), (radius, radius), 0.0, refl, porosity)
+        """(K, 2) centres; bottom, top, radius, reflectivity, porosity, material: scalars or (K,)."""
+        self._add(CYLINDER, centre, (z0, z1), (radius, radius), 0.0, refl, porosity, material)
 
     def build(self) -> Solids:
         if not self._parts:
             empty2 = np.zeros((0, 2))
-            return Solids(np.zeros(0, np.int8), empty2, empty2, empty2, *(np.zeros(0) for _ in range(3)))
+            zeros = (np.zeros(0) for _ in range(3))
+            return Solids(np.zeros(0, np.int8), empty2, empty2, empty2, *zeros, np.zeros(0, np.int8))
         return Solids(*(np.concatenate(cols) for cols in zip(*self._parts, strict=True)))

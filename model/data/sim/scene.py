@@ -9,12 +9,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from model.config import CLASS_NAMES
-from model.data.sim import actors
+from model.data.sim import actors, vehicles
 from model.data.sim.clutter import clutter
 from model.data.sim.frontage import frontage
 from model.data.sim.ground import Ground
 from model.data.sim.layout import OPEN, SUBURBAN, URBAN, Occupancy, Road, make_ground, sidewalks
-from model.data.sim.parts import SLAB, TARGET, Obstacles, TaggedSolidList
+from model.data.sim.parts import FURNITURE, SLAB, TARGET, Obstacles, TaggedSolidList
 from model.data.sim.raycast import Solids
 
 VEHICLE, PEDESTRIAN, CYCLIST = (CLASS_NAMES.index(n) for n in ("VEHICLE", "PEDESTRIAN", "CYCLIST"))
@@ -129,6 +129,9 @@ def make_scene(rng: np.random.Generator, cfg: SceneConfig, height: float, reach:
     tries = round(int(rng.integers(cfg.clutter[0], cfg.clutter[1] + 1)) * STYLES[layout].clutter)
     clutter(solids, occ, rng, roads, ground, tries, extent)
     obstacles = Obstacles.of(solids.build(), solids.tags())
+    solids.tag = FURNITURE
+    trailers = actors.parked_trailers(rng, roads, ground, occ, reach, obstacles)
+    vehicles.utility_trailer_solids(solids, rng, trailers)
     solids.tag = TARGET
     boxes, labels = [], []
     for label, counts in ((VEHICLE, cfg.vehicles), (CYCLIST, cfg.cyclists), (PEDESTRIAN, cfg.pedestrians)):
@@ -159,10 +162,7 @@ def _candidates(
 ) -> actors.Candidates:
     if label == VEHICLE:
         lanes = actors.vehicle_candidates(rng, roads, ground, reach)
-        drives = actors.driveway_candidates(rng, slots)
-        return actors.Candidates(
-            np.concatenate([lanes.boxes, drives.boxes]), np.concatenate([lanes.large, drives.large])
-        )
+        return actors.Candidates.join([lanes, actors.driveway_candidates(rng, slots)])
     if label == PEDESTRIAN:
         return actors.pedestrian_candidates(rng, roads, ground, reach, tries)
     return actors.cyclist_candidates(rng, roads, ground, reach, tries)
@@ -172,6 +172,6 @@ def _build(solids: TaggedSolidList, rng: np.random.Generator, label: int, chosen
     if label == VEHICLE:
         actors.vehicle_solids(solids, rng, chosen)
     elif label == PEDESTRIAN:
-        actors.pedestrian_solids(solids, rng, chosen.boxes)
+        actors.pedestrian_solids(solids, rng, chosen.boxes, chosen.kind)
     else:
-        actors.cyclist_solids(solids, rng, chosen.boxes)
+        actors.cyclist_solids(solids, rng, chosen.boxes, chosen.kind)

@@ -1,0 +1,131 @@
+"""The ROS 2 bridge against what a stranger (or a restarting driver) sends, with a real server (the default
+model, the bridge on its zenoh session) and a vehicle as rmw_zenoh runs one: a sector with seq 2^63-1 on the
+bridge's stream costs the vehicle one sector, never its stream; a driver's restart changes nothing; a huge
+frame_id refuses its scan; NaN intensities and NaN coordinates follow one rule (the point is dropped)."""
+
+from __future__ import annotations
+
+import queue
+import time
+from collections.abc import Iterator
+
+import httpx
+import numpy as np
+import pytest
+from ros2_helpers import pointcloud2_cdr
+from server_helpers import default_detector, free_endpoint, serve
+from test_ros2_bridge import STAMP_NS, Vehicle, scan_points, sectors_total
+
+from contract import INT64_MAX, MSGPACK, DetectionsReply, SectorMessage, decode_response, encode_sector
+
+WAIT_S = 60.0
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[tuple[str, str]]:
+    endpoint = free_endpoint()
+    settings = dict(zenoh_enabled=True, zenoh_listen=(endpoint,), deadline_ms=60_000)
+    with serve(default_detector(), **settings, ros2_points="/car1/lidar/points") as running:
+        yield running.url, endpoint
+
+
+def answered(url: str) -> float:
+    """The bridge's sectors answered so far, whatever the answer."""
+    text = httpx.get(f"{url}/metrics", timeout=10).text
+    prefix = "phim_sectors_total{"
+    lines = [x for x in text.splitlines() if x.startswith(prefix) and 'transport="ros2"' in x]
+    return sum(float(x.split()[-1]) for x in lines)
+
+
+def publish_and_settle(url: str, vehicle: Vehicle, cdr: bytes, sectors: int = 4) -> int:
+    """Publish one scan, wait until its sectors are answered; the arrays published for it."""
+    before = answered(url)
+    vehicle.publish(cdr)
+    deadline = time.monotonic() + WAIT_S
+    while answered(url) < before + sectors:
+        assert time.monotonic() < deadline, "the scan's sectors were not all answered"
+        time.sleep(0.05)
+    time.sleep(0.3)  # the publisher thread publishes right after the answer
+    return drain(vehicle)
+
+
+def drain(vehicle: Vehicle) -> int:
+    (got,) = vehicle.got.values()
+    n = 0
+    while True:
+        try:
+            got.get(timeout=0.2)
+        except queue.Empty:
+            return n
+        n += 1
+
+
+def test_a_huge_seq_on_the_bridges_stream_does_not_lock_the_vehicle_out(server: tuple[str, str]) -> None:
+    url, endpoint = server
+    points = scan_points()
+    cdr = pointcloud2_cdr(points, stamp_ns=STAMP_NS, frame_id="velodyne")
+    vehicle = Vehicle(endpoint)
+    try:
+        vehicle.wait_matched()
+        assert publish_and_settle(url, vehicle, cdr) == 4
+        # a stranger's sector on the bridge's stream ID, as far ahead as a seq goes
+        forged = SectorMessage(
+            "car1", INT64_MAX, 0, STAMP_NS, points[:200], ("x", "y", "z", "intensity"), True
+        )
+        r = httpx.post(
+            f"{url}/v1/streams/car1/sectors",
+            content=encode_sector(forged),
+            headers={"Content-Type": MSGPACK},
+            timeout=WAIT_S,
+        )
+        assert isinstance(decode_response(r.content), DetectionsReply)
+        stale = sectors_total(url, "stale_sequence")
+        assert publish_and_settle(url, vehicle, cdr) == 3  # the first is stale, the next restarts the stream
+        assert sectors_total(url, "stale_sequence") == stale + 1
+        assert publish_and_settle(url, vehicle, cdr) == 4  # and the vehicle goes on
+    finally:
+        vehicle.close()
+    restarted = Vehicle(endpoint)  # the driver restarts: a new session, its message count from 1 again
+    try:
+        restarted.wait_matched()
+        assert publish_and_settle(url, restarted, cdr) == 4
+    finally:
+        restarted.close()
+
+
+def test_a_huge_frame_id_refuses_its_scan(server: tuple[str, str]) -> None:
+    url, endpoint = server
+    points = scan_points()
+    vehicle = Vehicle(endpoint)
+    try:
+        vehicle.wait_matched()
+        refused = sectors_total(url, "invalid_field")
+        vehicle.publish(pointcloud2_cdr(points, stamp_ns=STAMP_NS, frame_id="f" * 100_000))
+        deadline = time.monotonic() + WAIT_S
+        while sectors_total(url, "invalid_field") < refused + 1:
+            assert time.monotonic() < deadline, "the scan was not refused"
+            time.sleep(0.05)
+        assert drain(vehicle) == 0  # nothing published for it
+        longest = "f" * 256  # --max-string-len: still taken, echoed in every header
+        assert (
+            publish_and_settle(url, vehicle, pointcloud2_cdr(points, stamp_ns=STAMP_NS, frame_id=longest))
+            == 4
+        )
+    finally:
+        vehicle.close()
+
+
+def test_nan_intensities_and_nan_coordinates_follow_one_rule(server: tuple[str, str]) -> None:
+    url, endpoint = server
+    points = scan_points().copy()
+    rng = np.random.default_rng(11)
+    points[rng.choice(len(points), 50, replace=False), 3] = np.nan  # intensity
+    points[rng.choice(len(points), 50, replace=False), 0] = np.nan  # x: a driver's "no return"
+    vehicle = Vehicle(endpoint)
+    try:
+        vehicle.wait_matched()
+        ok = sectors_total(url, "ok")
+        assert publish_and_settle(url, vehicle, pointcloud2_cdr(points, stamp_ns=STAMP_NS)) == 4
+        assert sectors_total(url, "ok") == ok + 4  # every sector answered; the bad points dropped
+    finally:
+        vehicle.close()
