@@ -13,6 +13,7 @@ import click
 import zenoh
 
 from contract import DEFAULT_ZENOH_ENDPOINT
+from server.settings import endpoint_is_loopback
 from server.zenoh_transport import ZenohConfig, open_session
 
 log = logging.getLogger("phim.router")
@@ -30,18 +31,37 @@ log = logging.getLogger("phim.router")
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
     help="A zenoh JSON5 file (TLS, user/password, ACL: deploy/zenoh/); --listen overrides its endpoints.",
 )
-def router_cmd(listen: str, config_file: Path | None) -> None:
-    """Route zenoh between workers and vehicles until SIGTERM/SIGINT."""
+@click.option(
+    "--insecure",
+    is_flag=True,
+    envvar="PHIM_INSECURE",
+    help="Listen beyond loopback without a guarding --config-file (anyone who reaches it may route).",
+)
+def router_cmd(listen: str, config_file: Path | None, insecure: bool) -> None:
+    """Route zenoh between workers and vehicles until SIGTERM/SIGINT. Like `phim serve`, a listener beyond
+    loopback needs a --config-file with an ACL, mTLS or user/password (deploy/zenoh/), or --insecure."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     endpoints = tuple(e.strip() for e in listen.split(",") if e.strip())
+    wide = [e for e in endpoints if not endpoint_is_loopback(e)]
+    if wide and not insecure and config_file is None:
+        raise click.UsageError(
+            f"--listen {','.join(wide)}: beyond loopback, and a router without an ACL routes anyone's sectors"
+            " into every stream; give --config-file FILE with an ACL, mTLS or user/password (deploy/zenoh/), "
+            "or --insecure (PHIM_INSECURE=1) to accept that"
+        )
     cfg = ZenohConfig(
-        mode="router", listen=endpoints, config_file=None if config_file is None else str(config_file)
+        mode="router",
+        listen=endpoints,
+        config_file=None if config_file is None else str(config_file),
+        guard_required=bool(wide) and not insecure,
     )
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
         session = open_session(cfg)
+    except ValueError as e:  # the config file guards nothing
+        raise click.UsageError(str(e)) from e
     except zenoh.ZError as e:
         raise click.ClickException(f"zenoh router on {','.join(endpoints)}: {e}") from e
     log.info("zenoh router %s listening on %s", session.zid(), ",".join(endpoints))

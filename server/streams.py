@@ -28,7 +28,13 @@ import torch
 from contract import DetectionsReply, ErrorCode, SectorMessage, ServiceError
 from model.graph.slots import SlotsExhausted, SlotState
 from model.stream import StreamState
-from server.tenants import tenant_of_id
+
+
+def tenant_of_id(stream_id: str) -> str:
+    """The tenant of a stream no token prefix covers: its ID up to and including the first '.', or the whole
+    ID when it has none."""
+    head, dot, _ = stream_id.partition(".")
+    return head + dot if dot else stream_id
 
 
 @dataclass

@@ -21,17 +21,11 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from contract import ErrorCode, ServiceError
+from server.streams import tenant_of_id as tenant_of_id  # the rule lives with the stream table
 
 if TYPE_CHECKING:
     from server.admission import Backlog
     from server.streams import Pending, StreamEntry
-
-
-def tenant_of_id(stream_id: str) -> str:
-    """The tenant of a stream no token prefix covers: its ID up to and including the first '.', or the whole
-    ID when it has none."""
-    head, dot, _ = stream_id.partition(".")
-    return head + dot if dot else stream_id
 
 
 @dataclass

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import zenoh
 from conftest import KITTI_VELODYNE, require_samples
-from server_helpers import RunningServer, free_endpoint, serve
+from server_helpers import START_TIMEOUT_S, RunningServer, free_endpoint, serve
 
 from clients.connect import ConnectConfig, Transport
 from clients.loadtest.config import LoadTestConfig, SourceConfig
@@ -37,7 +37,7 @@ class Served:
     def url(self) -> str:
         return self.server.url
 
-    def connect(self, transport: Transport, timeout_s: float = 30.0) -> ConnectConfig:
+    def connect(self, transport: Transport, timeout_s: float = START_TIMEOUT_S) -> ConnectConfig:
         return ConnectConfig(
             transport=transport, url=self.url, zenoh_connect=(self.zenoh_endpoint,), timeout_s=timeout_s
         )
@@ -50,7 +50,7 @@ def loadtest_config(served: Served, transport: Transport, **kw: Any) -> LoadTest
         source=LOADTEST_SOURCE,
         duration_s=1.0,
         turns_per_s=1.0,
-        drain_timeout_s=30.0,
+        drain_timeout_s=START_TIMEOUT_S,  # ends once every answer is in: generous for a busy machine
     )
     return LoadTestConfig(**{**base, **kw})
 

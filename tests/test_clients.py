@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 from client_helpers import Served, kitti_turns, serve_both, silent_http_server, silent_zenoh_worker
-from server_helpers import assert_same_boxes, comparable_detector, run_direct
+from server_helpers import START_TIMEOUT_S, assert_same_boxes, comparable_detector, run_direct
 
 from clients.base import DetectorClient, RequestTimeout, ServerError, TransportError, sector_message
 from clients.connect import Transport, make_client
@@ -168,13 +168,13 @@ def test_http_control_routes(served: Served, turns: list[Any]) -> None:
 
 def test_zenoh_control_goes_over_http_or_resets(served: Served, turns: list[Any]) -> None:
     k, points = turns[0][0]
-    with ZenohClient(connect=(served.zenoh_endpoint,), http_url=served.url, timeout_s=30) as zen:
+    with ZenohClient(connect=(served.zenoh_endpoint,), http_url=served.url, timeout_s=START_TIMEOUT_S) as zen:
         assert zen.model_info()["sectors_per_turn"] == 4
         assert zen.workers() == ["test-worker"]
         zen.send_points("zctl", 0, k, points)
         zen.end_stream("zctl")  # over HTTP: the stream is gone, seq 0 is fresh again
         assert zen.send_points("zctl", 0, k, points).context_sectors == 1
-    with ZenohClient(connect=(served.zenoh_endpoint,), timeout_s=30) as zen:
+    with ZenohClient(connect=(served.zenoh_endpoint,), timeout_s=START_TIMEOUT_S) as zen:
         with pytest.raises(NotSupported):
             zen.model_info()
         zen.send_points("zreset", 3, k, points)

@@ -119,15 +119,16 @@ async def watch(url: str, port: int) -> tuple[DetectionsReply, dict[int, bytes],
         replies: dict[int, DetectionsReply] = {}
         seen: dict[int, dict[int, bytes]] = {}  # seq -> subscription -> payload
         deadline = time.monotonic() + WAIT_S
-        while not any(len(got) == 2 for got in seen.values()):
+        both = lambda: [k for k, got in sorted(seen.items()) if len(got) == 2 and k in replies]  # noqa: E731
+        while not both():
             assert time.monotonic() < deadline, f"no sector seen on both subscriptions: {sorted(seen)}"
             replies[len(replies) + 1] = await asyncio.to_thread(post, url, "car-1", len(replies) + 1)
             with contextlib.suppress(TimeoutError):  # what came in a second; late ones are kept too
                 while True:
                     subscription, payload = await asyncio.wait_for(client.message(), 1.0)
                     seq = sensor_time_ns(decoded(by_subscription[subscription], payload)) // SECTOR_NS
-                    seen.setdefault(seq, {})[subscription] = payload  # sector 0's, if any, is never asked
-        seq = min(k for k, got in seen.items() if len(got) == 2)
+                    seen.setdefault(seq, {})[subscription] = payload  # sector 0's, if any, is not used
+        seq = both()[0]
         return replies[seq], seen[seq], client.channels, info["name"]
 
 
@@ -222,9 +223,9 @@ def test_a_failing_observer_never_fails_a_sector(det, caplog):
     worker = Worker(lambda: (det, "test"), WorkerConfig(warmup_sectors=1), observer=observer)
     worker.start()
     try:
-        assert worker.wait_ready(60)
+        assert worker.wait_ready(START_TIMEOUT_S)
         for seq in range(3):
-            reply = worker.submit(sector_msg("car-1", seq, CONTROL)).result(60)
+            reply = worker.submit(sector_msg("car-1", seq, CONTROL)).result(WAIT_S)
             assert reply.seq == seq
     finally:
         worker.close()

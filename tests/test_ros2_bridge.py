@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import zenoh
 from ros2_helpers import UINT8_INTENSITY, VELODYNE_XYZIRT, assert_boxes, pointcloud2_cdr, reply_for
-from server_helpers import default_detector, free_endpoint, serve
+from server_helpers import START_TIMEOUT_S, default_detector, free_endpoint, serve
 
 from contract import (
     MSGPACK,
@@ -44,7 +44,7 @@ from server.ros2_bridge import Ros2Bridge, Ros2Config
 from server.ros2_messages import DETECTION3D_ARRAY, MARKER_ARRAY
 from server.zenoh_transport import ZenohConfig, open_session
 
-WAIT_S = 60.0  # a guard against hangs; answers come as soon as the (CPU) forward is done
+WAIT_S = START_TIMEOUT_S  # a guard against hangs, generous; answers come as soon as the forward is done
 PC2_HASH = "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5"
 DET_HASH = "RIHS01_793f5eab9595ac1c0da07873cc859db42eae51f0ee76056db8562515d830e018"
 POINTS_KEY = f"0/car1/lidar/points/sensor_msgs::msg::dds_::PointCloud2_/{PC2_HASH}"

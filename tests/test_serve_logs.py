@@ -16,7 +16,7 @@ from typing import Any
 
 import httpx
 from conftest import REPO
-from server_helpers import free_port, post_first_sector
+from server_helpers import START_TIMEOUT_S, free_port, post_first_sector
 
 from server.logs import JsonFormatter
 
@@ -48,7 +48,7 @@ def serve_one_sector(tmp_path: Path, *flags: str, **env: str) -> tuple[str, str]
     return out.read_text(), err.read_text()
 
 
-def wait_ready(url: str, proc: subprocess.Popen, err: Path, timeout_s: float = 120) -> None:
+def wait_ready(url: str, proc: subprocess.Popen, err: Path, timeout_s: float = START_TIMEOUT_S) -> None:
     deadline = time.monotonic() + timeout_s
     while True:
         assert proc.poll() is None, f"phim serve exited early: {err.read_text()[-3000:]}"

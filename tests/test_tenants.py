@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 import torch
-from server_helpers import StepGate, default_detector, sector_msg, serve
+from server_helpers import START_TIMEOUT_S, StepGate, default_detector, sector_msg, serve
 
 from contract import (
     MSGPACK,
@@ -89,11 +89,11 @@ def test_default_shares_are_half_and_a_lone_tenant_may_fill_the_queue(det, monke
     assert WorkerConfig(max_streams=1, queue_size=1).tenant_shares()[:2] == (1, 1)
     w = Worker(lambda: (det, "test"), WorkerConfig(warmup_sectors=1, queue_size=6, deadline_ms=120_000))
     w.start()
-    assert w.wait_ready(60), w.status
+    assert w.wait_ready(START_TIMEOUT_S), w.status
     gate = StepGate.install(det, monkeypatch)
     try:
         first = w.submit(sector_msg("solo.car", 0, POINTS))
-        assert gate.entered.wait(60)
+        assert gate.entered.wait(START_TIMEOUT_S)
         futs = [w.submit(sector_msg("solo.car", s, POINTS)) for s in range(1, 8)]  # 6 queue, 1 refused
         refused = futs[-1].exception(10)
         assert isinstance(refused, ServiceError) and "queue_size=6" in refused.message
@@ -111,11 +111,11 @@ def test_a_flooding_ros2_stream_leaves_the_queue_share_of_the_others(det, monkey
     cfg = WorkerConfig(warmup_sectors=1, queue_size=8, deadline_ms=120_000, max_batch=4)
     w = Worker(lambda: (det, "test"), cfg)
     w.start()
-    assert w.wait_ready(60), w.status
+    assert w.wait_ready(START_TIMEOUT_S), w.status
     gate = StepGate.install(det, monkeypatch)
     try:
         flood = [w.submit(sector_msg("car1", 0, POINTS), transport="ros2")]
-        assert gate.entered.wait(60)
+        assert gate.entered.wait(START_TIMEOUT_S)
         flood += [w.submit(sector_msg("car1", s, POINTS), transport="ros2") for s in range(1, 20)]
         assert sum(f.done() for f in flood) == 11  # 8 queued, 11 refused at once (full), 1 running
         others = [w.submit(sector_msg(f"fleet-b.v{i}", 0, POINTS), transport="http") for i in range(4)]
@@ -167,7 +167,7 @@ def test_two_tenants_one_flooding_over_http(det, monkeypatch, tmp_path: Path):
 def _flood_and_share(url: str, pool: ThreadPoolExecutor, gate: StepGate, a: str, b: str) -> None:
     send = lambda stream, seq, t: pool.submit(_post, url, stream, seq, t)  # noqa: E731
     held = send("fleet-a.s0", 0, a)
-    assert gate.entered.wait(60)
+    assert gate.entered.wait(START_TIMEOUT_S)
     # A: 15 more streams at once; it may hold 8: 7 more start, 8 are refused at once
     starts = {f"fleet-a.s{i}": send(f"fleet-a.s{i}", 0, a) for i in range(1, 16)}
     wait_for(lambda: sum(f.done() for f in starts.values()) == 8)
@@ -204,7 +204,7 @@ def test_batches_share_the_device_between_tenants(det, monkeypatch):
     """A batch takes the tenants' queued streams in turn: 6 streams of A and 2 of B, max_batch 4: A 2, B 2."""
     w = Worker(lambda: (det, "test"), WorkerConfig(warmup_sectors=1, max_batch=4, deadline_ms=120_000))
     w.start()
-    assert w.wait_ready(60), w.status
+    assert w.wait_ready(START_TIMEOUT_S), w.status
     sizes: list[list[int]] = []
     real = det.step
 
@@ -215,7 +215,7 @@ def test_batches_share_the_device_between_tenants(det, monkeypatch):
     gate = StepGate.install(det, monkeypatch)
     try:
         first = w.submit(sector_msg("a.s0", 0, POINTS[:100]))
-        assert gate.entered.wait(60)
+        assert gate.entered.wait(START_TIMEOUT_S)
         monkeypatch.setattr(gate, "real", step)
         futs = [w.submit(sector_msg(f"a.s{i}", 0, POINTS[:100])) for i in range(1, 7)]
         futs += [w.submit(sector_msg(f"b.s{i}", 0, POINTS[:200])) for i in range(2)]

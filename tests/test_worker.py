@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 from server_helpers import (
+    START_TIMEOUT_S,
     StepGate,
     assert_same_boxes,
     comparable_detector,
@@ -35,7 +36,7 @@ def det() -> StreamingDetector:
 def running(det: StreamingDetector, **kw: Any) -> Iterator[Worker]:
     w = Worker(lambda: (det, "test detector"), WorkerConfig(warmup_sectors=1, **kw))
     w.start()
-    assert w.wait_ready(60), w.status
+    assert w.wait_ready(START_TIMEOUT_S), w.status
     try:
         yield w
     finally:
@@ -80,7 +81,7 @@ def test_two_streams_batch_together_and_never_mix(det, monkeypatch, scan_a, scan
     with running(det) as w:
         gate = StepGate.install(det, monkeypatch)
         blocker = w.submit(sector_msg("z", 0, scan_a[0]))
-        assert gate.entered.wait(30)
+        assert gate.entered.wait(START_TIMEOUT_S)
         futs = [
             (w.submit(sector_msg("a", i, scan_a[i])), w.submit(sector_msg("b", i, scan_b[i])))
             for i in range(4)
@@ -132,7 +133,7 @@ def test_overload_rejects_at_once_and_every_request_is_answered_once(det, monkey
     with running(det, queue_size=3) as w:
         gate = StepGate.install(det, monkeypatch)
         futs = [w.submit(sector_msg("s0", 0, scan_a[0]))]
-        assert gate.entered.wait(30)  # s0 is in the forward, the queue is empty
+        assert gate.entered.wait(START_TIMEOUT_S)  # s0 is in the forward, the queue is empty
         futs += [w.submit(sector_msg(f"s{i}", 0, scan_a[0])) for i in range(1, 9)]
         rejected = [f for f in futs if f.done()]
         assert len(rejected) == 5 and w.queue_depth == 3
@@ -153,7 +154,7 @@ def test_deadline_and_retry_of_the_same_seq(det, monkeypatch, scan_a, ref_a):
     with running(det, deadline_ms=100) as w:
         gate = StepGate.install(det, monkeypatch)
         blocker = w.submit(sector_msg("z", 0, scan_a[0]))
-        assert gate.entered.wait(30)
+        assert gate.entered.wait(START_TIMEOUT_S)
         late = w.submit(sector_msg("car", 0, scan_a[0]))
         time.sleep(0.3)
         gate.release()
@@ -169,7 +170,7 @@ def test_failed_batch_answers_errors_and_states_stay(det, monkeypatch, scan_a, s
         gate = StepGate.install(det, monkeypatch)
         gate.fail_at = {1}
         blocker = w.submit(sector_msg("z", 0, scan_a[0]))
-        assert gate.entered.wait(30)
+        assert gate.entered.wait(START_TIMEOUT_S)
         fa, fb = w.submit(sector_msg("a", 1, scan_a[1])), w.submit(sector_msg("b", 0, scan_b[0]))
         gate.release()
         ok(blocker)
@@ -228,7 +229,7 @@ def test_end_stream(det, monkeypatch, scan_a):
         assert e.code == ErrorCode.UNKNOWN_STREAM and "'nope'" in e.message
         gate = StepGate.install(det, monkeypatch)
         running_one = w.submit(sector_msg("car", 0, scan_a[0]))
-        assert gate.entered.wait(30)
+        assert gate.entered.wait(START_TIMEOUT_S)
         queued = w.submit(sector_msg("car", 1, scan_a[1]))
         w.end_stream("car")
         assert err(queued).code == ErrorCode.UNKNOWN_STREAM
@@ -242,11 +243,11 @@ def test_not_ready_during_warm_up(det, monkeypatch, scan_a):
     w = Worker(lambda: (det, "test detector"), WorkerConfig(warmup_sectors=1))
     w.start()
     try:
-        assert gate.entered.wait(30) and not w.ready
+        assert gate.entered.wait(START_TIMEOUT_S) and not w.ready
         e = err(w.submit(sector_msg("car", 0, scan_a[0])))
         assert e.code == ErrorCode.NOT_READY and "warming up" in e.message
         gate.release()
-        assert w.wait_ready(30)
+        assert w.wait_ready(START_TIMEOUT_S)
     finally:
         w.close(10)
 
@@ -254,11 +255,11 @@ def test_not_ready_during_warm_up(det, monkeypatch, scan_a):
 def test_close_drains_everything_in_flight(det, monkeypatch, scan_a):
     w = Worker(lambda: (det, "test detector"), WorkerConfig(warmup_sectors=1))
     w.start()
-    assert w.wait_ready(60)
+    assert w.wait_ready(START_TIMEOUT_S)
     gate = StepGate.install(det, monkeypatch)
     futs = [w.submit(sector_msg(f"s{i}", 0, scan_a[0])) for i in range(3)]
     futs.append(w.submit(sector_msg("s0", 1, scan_a[1])))
-    assert gate.entered.wait(30)
+    assert gate.entered.wait(START_TIMEOUT_S)
     closer = threading.Thread(target=w.close, args=(30,))
     closer.start()
     time.sleep(0.1)
@@ -273,10 +274,10 @@ def test_close_drains_everything_in_flight(det, monkeypatch, scan_a):
 def test_close_answers_what_the_drain_timeout_leaves(det, monkeypatch, scan_a):
     w = Worker(lambda: (det, "test detector"), WorkerConfig(warmup_sectors=1))
     w.start()
-    assert w.wait_ready(60)
+    assert w.wait_ready(START_TIMEOUT_S)
     gate = StepGate.install(det, monkeypatch)
     in_forward = w.submit(sector_msg("s0", 0, scan_a[0]))
-    assert gate.entered.wait(30)
+    assert gate.entered.wait(START_TIMEOUT_S)
     queued = [w.submit(sector_msg(f"s{i}", 0, scan_a[0])) for i in (1, 2)]
     closer = threading.Thread(target=w.close, args=(0.2,))
     closer.start()
@@ -298,7 +299,7 @@ def test_queued_points_are_bounded_and_an_empty_queue_takes_any_sector(det, monk
     with running(det, max_queued_points=5000) as w:
         gate = StepGate.install(det, monkeypatch)
         running_one = w.submit(sector_msg("r", 0, scan_a[2]))
-        assert gate.entered.wait(30)  # in the forward: the queue is empty
+        assert gate.entered.wait(START_TIMEOUT_S)  # in the forward: the queue is empty
         alone = w.submit(sector_msg("a", 0, np.concatenate([scan_a[0]] * 2)[:6000]))  # > 5000, queue empty
         refused = w.submit(sector_msg("b", 0, big))  # 6000 + 3000 > 5000
         e = err(refused)

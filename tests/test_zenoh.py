@@ -51,7 +51,7 @@ def start_worker(det: StreamingDetector, **kw: Any) -> Worker:
         WorkerConfig(worker_id="zenoh-test", warmup_sectors=1, deadline_ms=60_000, **kw),
     )
     worker.start()
-    assert worker.wait_ready(120), worker.status
+    assert worker.wait_ready(START_TIMEOUT_S), worker.status
     return worker
 
 

@@ -126,3 +126,27 @@ def spawned_worker(
     }
     cmd = [*PHIM, "serve", "--zenoh-mode", "client", "--zenoh-connect", router]  # no --zenoh-listen
     return spawned(cmd, f"http://127.0.0.1:{port}/health/ready", env=env, log=log)
+
+
+def test_a_router_beyond_loopback_needs_a_guard_or_insecure(tmp_path: Path):
+    """`phim router` applies serve's rule: beyond loopback, a guarding config file or --insecure."""
+    r = subprocess.run(
+        [*PHIM, "router", "--listen", "tcp/0.0.0.0:7447"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert "tcp/0.0.0.0:7447: beyond loopback" in r.stderr and "--insecure" in r.stderr
+    unguarded = tmp_path / "open.json5"
+    unguarded.write_text("{}\n")
+    r = subprocess.run(
+        [*PHIM, "router", "--listen", "tcp/0.0.0.0:7447", "--config-file", str(unguarded)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert "no ACL" in r.stderr

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from server_helpers import default_detector, free_port, sector_msg
+from server_helpers import START_TIMEOUT_S, default_detector, free_port, sector_msg
 
 from clients.base import TransportError
 from clients.zenoh_client import ZenohClient, ZenohClientConfig
@@ -53,7 +53,7 @@ def sample(name: str, certs: Path, out: Path, identity: str = "car-1", password:
 def worker() -> Iterator[Worker]:
     worker = Worker(lambda: (default_detector(), "test"), WorkerConfig(worker_id="w-tls", warmup_sectors=1))
     worker.start()
-    assert worker.wait_ready(120), worker.status
+    assert worker.wait_ready(START_TIMEOUT_S), worker.status
     yield worker
     worker.close(10)
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import zenoh
-from server_helpers import default_detector, free_endpoint, sector_msg
+from server_helpers import START_TIMEOUT_S, default_detector, free_endpoint, sector_msg
 
 from clients.zenoh_client import ZenohClient
 from clients.zenoh_workers import MAX_CLAIMS, LiveWorkers, State
@@ -46,7 +46,7 @@ def worker() -> Iterator[Worker]:
     det = default_detector()
     w = Worker(lambda: (det, "test"), WorkerConfig(worker_id=REAL, warmup_sectors=1, deadline_ms=60_000))
     w.start()
-    assert w.wait_ready(120), w.status
+    assert w.wait_ready(START_TIMEOUT_S), w.status
     yield w
     w.close(10)
 
