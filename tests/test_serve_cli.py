@@ -23,7 +23,7 @@ import torch
 import yaml
 from conftest import REPO
 from pydantic import ValidationError
-from server_helpers import free_port, post_first_sector
+from server_helpers import START_TIMEOUT_S, free_port, post_first_sector
 
 from contract import DetectionsReply, decode_response
 from server.settings import Settings
@@ -126,6 +126,7 @@ def test_image_commands_serve_a_sector_and_stop_cleanly(tmp_path: Path):
     )
     port = free_port()
     env.update(PHIM_CHECKPOINT=str(weights), PHIM_PORT=str(port), PHIM_THREADS="2", PHIM_WARMUP_SECTORS="2")
+    env["PHIM_MIN_SCORE"] = "0"  # every box: a reply with boxes shows the model ran on the sector
     if importlib.util.find_spec("server.zenoh_transport") is not None:
         env["PHIM_ZENOH_LISTEN"] = f"tcp/127.0.0.1:{free_port()}"
     else:  # the zenoh transport is not in this checkout yet
@@ -154,7 +155,9 @@ def test_image_commands_serve_a_sector_and_stop_cleanly(tmp_path: Path):
     assert "stopped by signal 15 after a graceful shutdown" in text and "Traceback" not in text
 
 
-def wait_healthy(env: dict[str, str], proc: subprocess.Popen, log: Path, timeout_s: float = 120) -> None:
+def wait_healthy(
+    env: dict[str, str], proc: subprocess.Popen, log: Path, timeout_s: float = START_TIMEOUT_S
+) -> None:
     """Run the image's HEALTHCHECK command until it passes."""
     deadline = time.monotonic() + timeout_s
     while True:
