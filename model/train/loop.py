@@ -1,7 +1,7 @@
 """`phim train`: the training loop (one process, or one per GPU/CPU under torchrun with DDP).
 
 A run directory holds:
-    train.json     the TrainConfig of the run (a resumed run must match it, except `steps`)
+    train.json     the TrainConfig of the run (a resumed run must match it, except `steps` and `init`)
     metrics.csv    one row per logged step (loss parts, learning rate, scans/s)
     state.pt       model, optimizer and step: what `--resume` continues from (the learning rate is a
                    function of the step, so `--resume --steps N` can also lengthen a run; a run stopped by
@@ -92,7 +92,8 @@ def _check_resume(out: Path, cfg: TrainConfig) -> None:
     saved = json.loads((out / "train.json").read_text())
     mine, defaults = _plain(cfg), _plain(TrainConfig())  # a field newer than the run: its default
     keys = sorted(set(saved) | set(mine))
-    diff = [k for k in keys if k != "steps" and saved.get(k, defaults.get(k)) != mine.get(k)]
+    free = ("steps", "init")  # a resumed run may be lengthened, and has its own weights (not --init's)
+    diff = [k for k in keys if k not in free and saved.get(k, defaults.get(k)) != mine.get(k)]
     if diff:
         raise ValueError(f"--resume: {out}/train.json differs from this run in {', '.join(diff)}")
 
