@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,13 +28,7 @@ import torch
 from contract import DetectionsReply, ErrorCode, SectorMessage, ServiceError
 from model.graph.slots import SlotsExhausted, SlotState
 from model.stream import StreamState
-
-
-def tenant_of_id(stream_id: str) -> str:
-    """The tenant of a stream no token prefix covers: its ID up to and including the first '.', or the whole
-    ID when it has none."""
-    head, dot, _ = stream_id.partition(".")
-    return head + dot if dot else stream_id
+from server.tenants import tenant_of_id
 
 
 @dataclass
@@ -230,3 +224,9 @@ class StreamTable:
             if self.on_evict is not None:
                 self.on_evict(sid)
         return old
+
+
+def queued_of(entries: Iterable[StreamEntry], tenant: str) -> list[Pending]:
+    """A tenant's queued sectors, newest first."""
+    queued = [p for e in entries if e.tenant == tenant for p in e.pending]
+    return sorted(queued, key=lambda p: p.submitted, reverse=True)

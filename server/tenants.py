@@ -16,16 +16,30 @@ device loop's batches take the streams' heads round-robin between tenants (`serv
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from contract import ErrorCode, ServiceError
-from server.streams import tenant_of_id as tenant_of_id  # the rule lives with the stream table
 
 if TYPE_CHECKING:
     from server.admission import Backlog
-    from server.streams import Pending, StreamEntry
+
+
+class Queued(Protocol):
+    """A queued sector as the push-out plan sees it (server.streams.Pending)."""
+
+    points: Any  # (N, C) float32 tensor
+
+
+Q = TypeVar("Q", bound=Queued)
+
+
+def tenant_of_id(stream_id: str) -> str:
+    """The tenant of a stream no token prefix covers: its ID up to and including the first '.', or the whole
+    ID when it has none."""
+    head, dot, _ = stream_id.partition(".")
+    return head + dot if dot else stream_id
 
 
 @dataclass
@@ -74,8 +88,8 @@ def plan_push_out(
     backlog: Backlog,
     tenant: str,
     n_points: int,
-    queued: Callable[[str], list[Pending]],
-) -> list[Pending] | None:
+    queued: Callable[[str], list[Q]],
+) -> list[Q] | None:
     """The queued sectors to push out so that a sector of `tenant` with n_points fits a full queue: the
     newest of the tenant furthest beyond its guarantee first, only while that tenant stays beyond it. None
     when the tenant is beyond its own guarantee, or when pushing out what is allowed would not make room.
@@ -83,7 +97,7 @@ def plan_push_out(
     if not queue.within_share(tenant, n_points):
         return None
     use = {t: TenantUse(u.sectors, u.points) for t, u in queue.use.items() if t != tenant}
-    taken: dict[str, list[Pending]] = {}
+    taken: dict[str, list[Q]] = {}
     sectors, points, plan = backlog.sectors, backlog.points, []
     while sectors >= backlog.max_sectors or (sectors and points + n_points > backlog.max_points):
         over = [t for t, u in use.items() if u.sectors > queue.share_sectors or u.points > queue.share_points]
@@ -100,12 +114,6 @@ def plan_push_out(
         use[victim].sectors -= 1
         use[victim].points -= n
     return plan
-
-
-def queued_of(entries: Iterable[StreamEntry], tenant: str) -> list[Pending]:
-    """A tenant's queued sectors, newest first."""
-    queued = [p for e in entries if e.tenant == tenant for p in e.pending]
-    return sorted(queued, key=lambda p: p.submitted, reverse=True)
 
 
 def pushed_out_error(victim: str, queue: TenantQueue, queue_size: int, retry_s: float) -> ServiceError:

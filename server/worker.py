@@ -29,8 +29,8 @@ from server.device_states import DetectorStates
 from server.metrics import OK, Metrics
 from server.outcomes import sector_answer
 from server.scheduler import Wait, batch_fill, decide, fair_order
-from server.streams import Pending, StreamEntry, StreamTable
-from server.tenants import TenantQueue, half, plan_push_out, pushed_out_error, queued_of, tenant_of_id
+from server.streams import Pending, StreamEntry, StreamTable, queued_of
+from server.tenants import TenantQueue, half, plan_push_out, pushed_out_error, tenant_of_id
 from server.warmup import freeze_heap, model_info, warm_up
 
 log = logging.getLogger(__name__)
