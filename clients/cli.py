@@ -16,7 +16,7 @@ import click
 
 from clients.loadtest.config import Mode
 from clients.options import connect_config, connection_options, every_option
-from model.data.samples import KITTI_VELODYNE
+from lidar.samples import KITTI_VELODYNE
 from phim.options import EnumValue, json_option
 from phim.progress import note
 

@@ -1,14 +1,14 @@
 """`phim replay`: stream a recorded drive to a server, one stream, at sensor rate or as fast as answered.
 
-Each scan is cut into the model's sectors in sweep order (model.data.sectorizer.split_scan) and sent in order;
+Each scan is cut into the model's sectors in sweep order (lidar.sectorizer.split_scan) and sent in order;
 every sector's answer (detections or the server's error) becomes one record of the prediction file
 (clients.predictions). With `min_score`, every sector asks for the boxes scored at least that (else the
 server's min_score applies). With `frames_dir`, one bird's-eye-view PNG per scan after its last sector:
 points, the boxes the reply returned and the labels when they sit beside the scan (KITTI label_2 + calib,
-nuScenes boxes), drawn as `phim eval --pictures` draws (model.data.pictures).
+nuScenes boxes), drawn as `phim eval --pictures` draws (lidar.pictures).
 
-The scans come from scan files (model.data.readers) or from a ROS 2 recording (rosbag2 folder, .mcap, .db3:
-model.data.recordings, one PointCloud2 message per turn). With `mcap`, the points of each scan and the
+The scans come from scan files (lidar.readers) or from a ROS 2 recording (rosbag2 folder, .mcap, .db3:
+lidar.recordings, one PointCloud2 message per turn). With `mcap`, the points of each scan and the
 boxes of its last sector are written as a Foxglove scene (phim.scene) at the scan's sensor time.
 """
 
@@ -29,11 +29,11 @@ from clients.base import DetectorClient, ServerError
 from clients.connect import ConnectConfig, make_client
 from clients.predictions import PredictionRecord, PredictionWriter
 from contract import REQUIRED_FIELDS, SectorMessage
-from model.data.labels import labels_for
-from model.data.pictures import BoxSet, draw_bev
-from model.data.readers import Scan, find_scans, read_scan
-from model.data.recordings import is_recording, read_recording
-from model.data.sectorizer import split_scan
+from lidar.labels import labels_for
+from lidar.pictures import BoxSet, draw_bev
+from lidar.readers import Scan, find_scans, read_scan
+from lidar.recordings import is_recording, read_recording
+from lidar.sectorizer import split_scan
 from phim.scene import SceneChannels, record_scenes
 
 log = logging.getLogger(__name__)

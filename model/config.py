@@ -11,7 +11,8 @@ import enum
 import math
 from dataclasses import asdict, dataclass, field, replace
 
-CLASS_NAMES: tuple[str, ...] = ("VEHICLE", "PEDESTRIAN", "CYCLIST")
+from lidar.types import CLASS_NAMES, DEFAULT_SECTORS
+
 # point columns in the order the model reads them; a config uses the first `vfe.point_features`
 POINT_FIELDS: tuple[str, ...] = ("x", "y", "z", "intensity", "elongation")
 
@@ -207,7 +208,7 @@ class PHiMConfig:
     backbone: BackboneConfig
     bev: BEVConfig
     head: HeadConfig
-    sectors_per_turn: int = 4
+    sectors_per_turn: int = DEFAULT_SECTORS
     buffer_sectors: int = 3  # sectors kept per stream besides the new one (n - 1)
     history: MambaHistory = MambaHistory.TURN  # training runs one turn from a zero state: so does serving
     # the fixed-shape step's voxel rows per buffered sector (serving only, no weights: a sector with more

@@ -37,7 +37,7 @@ COMMANDS: dict[str, Entry | Group] = {
     ),
     "router": Entry("server.router_cli:router_cmd", "A zenoh router where workers and vehicles meet."),
     "replay": Entry("clients.cli:replay", "Stream a recorded drive to a server and write its detections."),
-    "sim": Entry("model.data.sim.cli:sim_cmd", "Simulate one LiDAR turn through a random street scene."),
+    "sim": Entry("lidar.sim.cli:sim_cmd", "Simulate one LiDAR turn through a random street scene."),
     "train": Entry("model.train.cli:train_cmd", "Train a model (streaming, as the paper trains)."),
     "train-refiner": Entry(
         "model.train.refine_cli:train_refiner_cmd", "Train the box refiner on a trained, frozen detector."
@@ -61,7 +61,7 @@ COMMANDS: dict[str, Entry | Group] = {
             ),
             "refiner": Entry("model.tools.cli:bench_refiner_cmd", "The box refiner's share of a step."),
             "ops": Entry("model.tools.cli:bench_ops_cmd", "Torch ops and host syncs of one streaming step."),
-            "sim": Entry("model.data.sim.cli:bench_sim_cmd", "Simulator throughput, single-threaded."),
+            "sim": Entry("lidar.sim.cli:bench_sim_cmd", "Simulator throughput, single-threaded."),
             "server": Entry("clients.bench.server:bench_server_cmd", "The server's own overhead per sector."),
             "fleet": Entry(
                 "clients.bench.fleet:bench_fleet_cmd", "Throughput of 1..N workers behind a router."

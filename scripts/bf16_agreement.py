@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import torch
 
+from lidar.samples import KITTI_VELODYNE
 from model.config import Engine, Precision
-from model.data.samples import KITTI_VELODYNE
 from model.geometry.boxes import Detections
 from model.graph.engine import Detector, GraphStreamingDetector, streaming_detector
 from model.sectors import load_kitti_bin, split_turn

@@ -1,7 +1,7 @@
 """Simulated and real objects side by side: docs/pictures/sim-objects-vs-real.png.
 
 A car and a pedestrian at about 10 m and 30 m: the real ones cut from the KITTI scans in the shared samples
-with their labels, the simulated ones made by the simulator (model/data/sim) in the same label box and cast
+with their labels, the simulated ones made by the simulator (lidar/sim) in the same label box and cast
 with the HDL-64E preset on a flat street, noise and dropout as in `simulate`. Each row shows one object's
 points in its box frame from above and from the side (intensity as colour); the box is drawn dashed.
 
@@ -17,15 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-from model.data.readers import read_labeled
-from model.data.samples import SAMPLES_DIR
-from model.data.sim import Sensor, SimConfig, sensor_spec, stats
-from model.data.sim.ground import Ground
-from model.data.sim.people import PLAIN, pedestrian_solids
-from model.data.sim.raycast import Rays, SolidList
-from model.data.sim.scene import Scene
-from model.data.sim.simulate import cast_scene
-from model.data.sim.vehicles import vehicle_solids
+from lidar.readers import read_labeled
+from lidar.samples import SAMPLES_DIR
+from lidar.sim import Sensor, SimConfig, sensor_spec, stats
+from lidar.sim.ground import Ground
+from lidar.sim.people import PLAIN, pedestrian_solids
+from lidar.sim.raycast import Rays, SolidList
+from lidar.sim.scene import Scene
+from lidar.sim.simulate import cast_scene
+from lidar.sim.vehicles import vehicle_solids
 
 HEIGHT = 1.73  # KITTI's sensor above the road
 MARGIN = 0.3  # metres around the box that a panel shows

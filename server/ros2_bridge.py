@@ -1,7 +1,7 @@
 """The ROS 2 bridge: a vehicle's sensor_msgs/msg/PointCloud2 topic in over rmw_zenoh, each sector's boxes out
 as vision_msgs/msg/Detection3DArray (and, if asked, visualization_msgs/msg/MarkerArray), without a ROS
 install (docs/ros2.md). Keys, attachments and liveliness tokens: contract/ros2.py; messages and type
-hashes: server/ros2_messages.py; PointCloud2 -> points: model/data/pointcloud2.py.
+hashes: server/ros2_messages.py; PointCloud2 -> points: lidar/pointcloud2.py.
 
 A ROS node, as a ROS 2 graph sees it (`ros2 node list`, `ros2 topic list`, `ros2 topic echo`): one
 subscription (the points topic) and one or two publishers, announced once the worker is warmed up. Each
@@ -50,8 +50,8 @@ from contract.ros2 import (
     default_stream_id,
     topic_key,
 )
-from model.data.pointcloud2 import cloud_spin, decode_pointcloud2, pointcloud2_points, stamp_ns
-from model.data.sectorizer import StreamSectorizer, split_scan
+from lidar.pointcloud2 import cloud_spin, decode_pointcloud2, pointcloud2_points, stamp_ns
+from lidar.sectorizer import StreamSectorizer, split_scan
 from server import ros2_messages as messages
 from server.ros2_messages import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2, Header
 from server.zenoh_transport import JOIN_TIMEOUT_S, Submit, ZenohConfig, open_session, submit_or_fail

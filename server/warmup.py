@@ -12,7 +12,7 @@ from typing import Any
 import torch
 
 from contract import POINT_FIELDS, REQUIRED_FIELDS
-from model.data.synthetic import synthetic_turn
+from lidar.synthetic import synthetic_turn
 from model.geometry.nms_cpu import compile_kernels as compile_nms_kernels
 from model.graph.buckets import BATCH_BUCKETS, batch_bucket
 from model.graph.engine import Detector, GraphStreamingDetector

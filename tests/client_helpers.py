@@ -18,8 +18,8 @@ from server_helpers import START_TIMEOUT_S, RunningServer, free_endpoint, serve
 
 from clients.connect import ConnectConfig, Transport
 from clients.loadtest.config import LoadTestConfig, SourceConfig
-from model.data.readers import read_scan
-from model.data.sectorizer import split_scan
+from lidar.readers import read_scan
+from lidar.sectorizer import split_scan
 from model.stream import StreamingDetector
 from server.zenoh_transport import ZenohConfig, open_session
 

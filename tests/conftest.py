@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from model.data.samples import KITTI_VELODYNE
-from model.data.samples import SAMPLES_DIR as SHARED_DATA
+from lidar.samples import KITTI_VELODYNE
+from lidar.samples import SAMPLES_DIR as SHARED_DATA
 
 REPO = Path(__file__).resolve().parents[1]
 # CI sets this (.ci/run): a test that needs the real samples fails where they are missing instead of skipping

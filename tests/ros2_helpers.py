@@ -1,7 +1,7 @@
 """Test-only writers of ROS 2 data: sensor_msgs/msg/PointCloud2 CDR in the layouts real drivers publish, and
 recordings holding them (rosbag2 with MCAP or sqlite3 storage, a plain MCAP written by the `mcap` library).
 
-Nothing here is product code: the product only reads (model/data/pointcloud2.py, clients/recordings.py).
+Nothing here is product code: the product only reads (lidar/pointcloud2.py, clients/recordings.py).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from contract import DetectionsReply, SectorMessage, Timings
-from model.data.pointcloud2 import POINT_FIELD_TYPES, POINTCLOUD2, typestore
+from lidar.pointcloud2 import POINT_FIELD_TYPES, POINTCLOUD2, typestore
 from server import ros2_messages as messages
 
 FLOAT32, FLOAT64, UINT8, UINT16, UINT32 = 7, 8, 2, 4, 6
@@ -231,10 +231,10 @@ def write_plain_mcap(
 
 def sample_turns(count: int = 2, every: int = 1) -> list[np.ndarray]:
     """(N, 4) float32 turns: KITTI scans 0, 1, ... where the samples are (CI demands them), else synthetic
-    turns (model.data.synthetic), so these tests run without ../shared."""
+    turns (lidar.synthetic), so these tests run without ../shared."""
     from conftest import KITTI_VELODYNE, REQUIRE_SAMPLES, kitti_scan
 
-    from model.data.synthetic import synthetic_turn
+    from lidar.synthetic import synthetic_turn
 
     if KITTI_VELODYNE.exists() or REQUIRE_SAMPLES:
         return [kitti_scan(i).numpy()[::every].copy() for i in range(count)]

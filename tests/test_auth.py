@@ -21,7 +21,7 @@ from server_helpers import default_detector, sector_msg, serve
 from clients.base import ServerError
 from clients.connect import ConnectConfig, make_client
 from contract import ErrorCode, decode_response
-from model.data.synthetic import synthetic_turn
+from lidar.synthetic import synthetic_turn
 from model.sectors import split_turn
 from server.auth import TokenFile, TokenFileError, add_token, parse_tokens, token_hash
 from server.settings import Settings

@@ -96,8 +96,8 @@ def test_init_weights_leave_out_the_columns_a_model_does_not_read(tmp_path):
     checkpoint's model does with the intensity column zero; any other config difference is refused."""
     from test_streaming import assert_same_detections, make_model
 
+    from lidar.synthetic import synthetic_turn
     from model.checkpoint import init_weights
-    from model.data.synthetic import synthetic_turn
     from model.sectors import split_turn
     from model.stream import StreamingDetector
 

@@ -15,14 +15,14 @@ from conftest import REPO
 from server_helpers import default_detector
 
 from contract import REQUIRED_FIELDS
-from model.data.readers import write_native_scan
-from model.data.synthetic import synthetic_turn
+from lidar.readers import write_native_scan
+from lidar.synthetic import synthetic_turn
 
 SOURCES = ("pyproject.toml", "README.md", "LICENSE", "contract", "phim", "model", "server", "clients")
 CLIENT_CODE = """
 from clients.http_client import HttpClient
-from model.data.sectorizer import split_scan
-from model.data.synthetic import synthetic_turn
+from lidar.sectorizer import split_scan
+from lidar.synthetic import synthetic_turn
 turn = synthetic_turn(seed=1)[::8]
 with HttpClient("{url}") as client:
     for seq, sector in enumerate(split_scan(turn, ("x", "y", "z", "intensity"), sectors=4)):

@@ -1,4 +1,4 @@
-"""`--data custom:DIR` (OpenPCDet's custom layout, model/data/custom.py): the reader, its errors (file and
+"""`--data custom:DIR` (OpenPCDet's custom layout, lidar/custom.py): the reader, its errors (file and
 line named), the class map, the splits, and the user's path: fine-tune the shipped default on a folder written
 from simulated scans, its loss falls, and `phim serve` serves the result."""
 
@@ -16,6 +16,20 @@ from click.testing import CliRunner
 from server_helpers import sector_msg, serve
 
 from contract import MSGPACK, DetectionsReply, decode_response, encode_sector
+from lidar.custom import (
+    CustomDataError,
+    read_custom_labels,
+    read_custom_points,
+    read_custom_scan,
+    write_custom_scan,
+    write_splits,
+)
+from lidar.datasets import parse_data_spec
+from lidar.readers import sector_of_xy
+from lidar.selection import ClassMap, Split, parse_class_map
+from lidar.sim import Sensor, SimConfig
+from lidar.sources import SimSource, iter_labeled, scan_source
+from lidar.types import GroundTruth, LabeledScan
 from model.checkpoint import (
     DEFAULT_CHECKPOINT,
     init_weights,
@@ -24,20 +38,6 @@ from model.checkpoint import (
     save_checkpoint,
 )
 from model.config import CLASS_NAMES, tiny
-from model.data.custom import (
-    CustomDataError,
-    read_custom_labels,
-    read_custom_points,
-    read_custom_scan,
-    write_custom_scan,
-    write_splits,
-)
-from model.data.datasets import parse_data_spec
-from model.data.readers import sector_of_xy
-from model.data.selection import ClassMap, Split, parse_class_map
-from model.data.sim import Sensor, SimConfig
-from model.data.sources import SimSource, iter_labeled, scan_source
-from model.data.types import GroundTruth, LabeledScan
 from model.detector import PHiM
 from model.train.data import AugmentConfig, SampleConfig, make_sample
 from model.train.loop import TrainConfig, train

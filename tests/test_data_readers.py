@@ -1,4 +1,4 @@
-"""Readers of real LiDAR data as labelled scans (model.data): the class mappings, the frames (boxes hold the
+"""Readers of real LiDAR data as labelled scans (lidar): the class mappings, the frames (boxes hold the
 points the datasets say they hold), KITTI's label_fov, the native format's round trip and the data specs.
 The numbers checked come from ../shared/data/README.md."""
 
@@ -13,13 +13,13 @@ import pytest
 import torch
 from conftest import SHARED_DATA
 
-import model.data.sectorizer
+import lidar.sectorizer
+from lidar.datasets import DataKind, DataSpec, list_scan_paths, parse_data_spec
+from lidar.labels import labels_for, nuscenes_boxes_path, read_kitti_labels, read_nuscenes_boxes
+from lidar.readers import Spin, read_labeled, read_scan, sector_of_xy, write_labeled, write_native_scan
+from lidar.sources import iter_labeled
+from lidar.types import LEVEL_1, LEVEL_2, GroundTruth, LabeledScan, points_in_boxes
 from model.config import CLASS_NAMES
-from model.data.datasets import DataKind, DataSpec, list_scan_paths, parse_data_spec
-from model.data.labels import labels_for, nuscenes_boxes_path, read_kitti_labels, read_nuscenes_boxes
-from model.data.readers import Spin, read_labeled, read_scan, sector_of_xy, write_labeled, write_native_scan
-from model.data.sources import iter_labeled
-from model.data.types import LEVEL_1, LEVEL_2, GroundTruth, LabeledScan, points_in_boxes
 from model.sectors import sector_of_points
 
 KITTI = SHARED_DATA / "kitti_object"
@@ -36,7 +36,7 @@ def _kitti_types(root: Path, name: str) -> list[str]:
 
 
 def test_spin_moved_with_the_readers() -> None:
-    assert model.data.sectorizer.Spin is Spin
+    assert lidar.sectorizer.Spin is Spin
 
 
 @pytest.mark.samples

@@ -12,9 +12,9 @@ import torch
 from conftest import kitti_scan
 from server_helpers import default_detector
 
+from lidar.pictures import box_corners
 from model.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, save_checkpoint
 from model.config import EgoFootprint, PHiMConfig, tiny
-from model.data.pictures import box_corners
 from model.ego import drop_ego_boxes, drop_ego_points, on_ego
 from model.geometry.boxes import Detections
 from model.sectors import split_turn
@@ -108,7 +108,7 @@ def test_without_the_footprint_the_ego_box_comes_back() -> None:
 
 def test_the_eager_and_whole_turn_paths_drop_the_same_points() -> None:
     """A synthetic turn with points put on the ego car: streaming it equals streaming it without them."""
-    from model.data.synthetic import synthetic_turn
+    from lidar.synthetic import synthetic_turn
 
     model = load_checkpoint(DEFAULT_CHECKPOINT).eval()
     turn = torch.from_numpy(synthetic_turn(seed=1))

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import torch
 
+from lidar.datasets import DataKind, parse_data_spec
+from lidar.readers import sector_of_xy
+from lidar.sources import iter_labeled, scan_source
+from lidar.types import LEVEL_1, GroundTruth, LabeledScan, Predictions, Spin, points_in_boxes
 from model.checkpoint import resolve_checkpoint
 from model.config import CLASS_NAMES, paper, tiny
-from model.data.datasets import DataKind, parse_data_spec
-from model.data.readers import sector_of_xy
-from model.data.sources import iter_labeled, scan_source
-from model.data.types import LEVEL_1, GroundTruth, LabeledScan, Predictions, Spin, points_in_boxes
 from model.eval.runner import ScanResult, run_eval, scan_sectors, truths_by_fill, within_range
 from model.eval.vehicle_check import VehicleCheckConfig, vehicle_check
 from model.geometry.boxes import rotated_iou_bev

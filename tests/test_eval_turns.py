@@ -8,8 +8,8 @@ import dataclasses
 import numpy as np
 from test_streaming import make_model
 
+from lidar.sources import SimSource
 from model.config import MambaHistory
-from model.data.sources import SimSource
 from model.eval.runner import predict_scan
 from model.eval.turns import run_turns, score_turns
 

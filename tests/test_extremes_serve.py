@@ -62,8 +62,8 @@ def mislabelled_cloud() -> bytes:
     """A little-endian PointCloud2 flagged `is_bigendian` (CDR): finite coordinates up to ~3e38 as read."""
     from ros2_helpers import VELODYNE_XYZIRT, pointcloud2_message
 
-    from model.data.pointcloud2 import POINTCLOUD2, typestore
-    from model.data.synthetic import synthetic_turn
+    from lidar.pointcloud2 import POINTCLOUD2, typestore
+    from lidar.synthetic import synthetic_turn
 
     msg = dataclasses.replace(pointcloud2_message(synthetic_turn(seed=3)), is_bigendian=True)
     assert not VELODYNE_XYZIRT.big_endian  # the data under the flag is little-endian
@@ -71,7 +71,7 @@ def mislabelled_cloud() -> bytes:
 
 
 def test_a_pointcloud2_whose_byte_order_lies_is_refused_naming_the_field() -> None:
-    from model.data.pointcloud2 import decode_pointcloud2, pointcloud2_points
+    from lidar.pointcloud2 import decode_pointcloud2, pointcloud2_points
 
     msg = decode_pointcloud2(mislabelled_cloud())
     with pytest.raises(ValueError, match=r"PointCloud2 field 'x': \d+ points beyond 10000 m .*is_bigendian"):
@@ -142,7 +142,7 @@ def test_the_issues_sector_and_cloud_are_answered_and_the_worker_goes_on(worker)
 
     from clients.base import ServerError
     from clients.connect import ConnectConfig, Transport, make_client
-    from model.data.synthetic import synthetic_turn
+    from lidar.synthetic import synthetic_turn
 
     url, endpoint, proc, _ = worker
     r = _post(url, "killer-http", killer_sector(), 1)

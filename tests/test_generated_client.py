@@ -28,8 +28,8 @@ from conftest import REQUIRE_SAMPLES, kitti_scan
 from server_helpers import RunningServer, default_detector, serve
 
 from contract import JSON, MSGPACK
-from model.data.samples import KITTI_000000
-from model.data.sim.simulate import simulate
+from lidar.samples import KITTI_000000
+from lidar.sim.simulate import simulate
 from model.sectors import split_turn
 
 PACKAGE = "phim_generated_client"

@@ -12,8 +12,8 @@ import torch
 from test_graph_step import run_both
 from test_streaming import make_model
 
+from lidar.synthetic import synthetic_turn
 from model.config import PHiMConfig, paper, tiny
-from model.data.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.fold_bn import fold_batchnorms
 from model.graph.bev_crop import bev_halo, crop_cells, merge_crop, wedge_bins

@@ -10,7 +10,7 @@ from conftest import rss_bytes
 from test_graph_step import assert_same_state
 from test_streaming import assert_same_detections, make_model
 
-from model.data.synthetic import synthetic_turn
+from lidar.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.graph.engine import GraphStreamingDetector, SectorRejected
 from model.graph.slots import SlotsExhausted

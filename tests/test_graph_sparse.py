@@ -9,8 +9,8 @@ import torch
 from test_voxelize import make_voxelizer
 from torch import Tensor
 
+from lidar.samples import KITTI_000000
 from model.config import VFEConfig, paper, tiny
-from model.data.samples import KITTI_000000
 from model.geometry.rulebook import Plane
 from model.geometry.sparse_tensor import SparseTensor, linear_key
 from model.graph.conv_cpu import _identity_prefix, conv_pairs

@@ -11,8 +11,8 @@ import torch
 from conftest import kitti_scan
 from test_streaming import assert_same_detections, make_model
 
+from lidar.synthetic import synthetic_turn
 from model.config import MambaHistory, paper, tiny
-from model.data.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.graph.buckets import CapacityPlanner, row_bucket
 from model.graph.engine import GraphStreamingDetector, GraphStreamState, SlotState

@@ -10,8 +10,8 @@ import torch
 from test_voxelize import make_voxelizer
 from torch import Tensor
 
+from lidar.samples import KITTI_000000
 from model.config import paper, tiny
-from model.data.samples import KITTI_000000
 from model.graph.sites import SENTINEL
 from model.graph.voxelize import _group_torch, _point_keys_torch
 from model.graph.voxelize_cpu import grid_args, group_sorted, point_keys

@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from model.data.types import LEVEL_1, LEVEL_2, GroundTruth, Predictions
+from lidar.types import LEVEL_1, LEVEL_2, GroundTruth, Predictions
 from model.eval.assignment import max_weight_matching
 from model.eval.metrics import (
     WAYMO_SCORE_CUTOFFS,

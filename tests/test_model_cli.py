@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from lidar.sources import scan_source
 from model.checkpoint import resolve_checkpoint, save_checkpoint
 from model.config import tiny
-from model.data.sources import scan_source
 from model.detector import PHiM
 from phim.cli import main as app
 
@@ -106,7 +106,7 @@ def test_bench_ops_credits_every_op_to_a_model_function() -> None:
 @pytest.mark.parametrize("config", ["tiny", "paper"])
 def test_the_graph_step_never_waits_for_the_device(config: str, tmp_path) -> None:
     """`phim bench ops --engine graph`: no op between the inputs on the device and the host copy syncs."""
-    from model.data.synthetic import synthetic_turn
+    from lidar.synthetic import synthetic_turn
 
     points = tmp_path / "turn.bin"
     synthetic_turn(seed=0)[::8].astype(np.float32).tofile(points)  # thinned: paper runs a few CPU steps

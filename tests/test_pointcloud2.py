@@ -1,4 +1,4 @@
-"""sensor_msgs/msg/PointCloud2 decoding (model/data/pointcloud2.py): every driver layout gives back the points
+"""sensor_msgs/msg/PointCloud2 decoding (lidar/pointcloud2.py): every driver layout gives back the points
 it was written from (a KITTI scan where the samples are, else a synthetic turn), row padding, big-endian
 data, NaN returns, and errors that name the field."""
 
@@ -27,8 +27,8 @@ from ros2_helpers import (
     sample_turns,
 )
 
-from model.data.pointcloud2 import cloud_spin, decode_pointcloud2, pointcloud2_points, stamp_ns
-from model.data.readers import Spin
+from lidar.pointcloud2 import cloud_spin, decode_pointcloud2, pointcloud2_points, stamp_ns
+from lidar.readers import Spin
 
 INT_SCALES = {UINT8: 1 / 255, UINT16: 1 / 65535}  # integer intensity: 0..1 stored as 0..255 / 0..65535
 
@@ -143,16 +143,16 @@ def test_an_empty_cloud_is_no_points(turn: np.ndarray) -> None:
 
 def test_spin_from_the_net_rotation(turn: np.ndarray) -> None:
     """Ring-by-ring (KITTI) and firing-by-firing (synthetic) orders both tell the spin, either way round."""
-    from model.data.synthetic import synthetic_turn
+    from lidar.synthetic import synthetic_turn
 
     for points in (turn, synthetic_turn(seed=3)):
         assert cloud_spin(points) is Spin.CCW
         assert cloud_spin(points[::-1]) is Spin.CW
 
 
-def test_model_data_imports_no_ros_library() -> None:
+def test_lidar_imports_no_ros_library() -> None:
     code = (
-        "import sys, model.data.pointcloud2, model.data.recordings, phim.scene;"
+        "import sys, lidar.pointcloud2, lidar.recordings, phim.scene;"
         "print([m for m in ('rosbags', 'mcap', 'foxglove', 'torch') if m in sys.modules])"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)

@@ -12,8 +12,8 @@ import torch
 from conftest import kitti_scan
 from pydantic import ValidationError
 
+from lidar.sources import SimSource
 from model.config import Engine, MambaConfig, Precision, ScanImpl, tiny
-from model.data.sources import SimSource
 from model.eval.runner import predict_scan
 from model.geometry.boxes import Detections
 from model.graph.engine import streaming_detector

@@ -20,9 +20,9 @@ from server_helpers import assert_same_boxes, run_direct, sector_msg, serve
 from test_streaming import assert_same_detections
 
 from contract import DetectionsReply, decode_response, encode_sector
+from lidar.sources import scan_source
 from model.checkpoint import init_weights, load_checkpoint, resolve_checkpoint
 from model.config import RefineConfig, tiny
-from model.data.sources import scan_source
 from model.detector import PHiM
 from model.eval.metrics import iou_matrix
 from model.eval.runner import scan_sectors

@@ -18,8 +18,8 @@ from server_helpers import default_detector
 from clients.connect import Transport
 from clients.predictions import read_predictions, scan_predictions
 from clients.replay import ReplayConfig, replay
-from model.data.labels import kitti_labels_for, nuscenes_labels_for
-from model.data.readers import Spin, find_scans, read_scan, write_native_scan
+from lidar.labels import kitti_labels_for, nuscenes_labels_for
+from lidar.readers import Spin, find_scans, read_scan, write_native_scan
 from phim.cli import main as app
 
 pytestmark = pytest.mark.samples  # every test replays or reads the real KITTI and nuScenes samples

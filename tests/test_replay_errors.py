@@ -11,8 +11,8 @@ from click.testing import CliRunner
 from ros2_helpers import POINTCLOUD2, Recorded, recording, write_plain_mcap, write_rosbag2
 from server_helpers import free_port
 
-from model.data.readers import read_scan
-from model.data.synthetic import synthetic_turn
+from lidar.readers import read_scan
+from lidar.synthetic import synthetic_turn
 from phim.cli import main as app
 
 

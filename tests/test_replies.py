@@ -31,8 +31,8 @@ from contract import (
     decode_sector,
     encode_sector,
 )
+from lidar.types import GroundTruth, Predictions
 from model.config import EgoFootprint
-from model.data.types import GroundTruth, Predictions
 from model.ego import on_ego
 from model.eval.pictures import replied_boxes
 from model.eval.runner import ScanResult

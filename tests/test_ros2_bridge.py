@@ -35,10 +35,10 @@ from contract import (
 from contract.ros2 import (
     Attachment,
 )
-from model.data.pointcloud2 import cloud_spin
-from model.data.samples import KITTI_VELODYNE
-from model.data.sectorizer import StreamSectorizer, split_scan
-from model.data.synthetic import synthetic_turn
+from lidar.pointcloud2 import cloud_spin
+from lidar.samples import KITTI_VELODYNE
+from lidar.sectorizer import StreamSectorizer, split_scan
+from lidar.synthetic import synthetic_turn
 from server import ros2_messages as messages
 from server.ros2_bridge import Ros2Bridge, Ros2Config
 from server.ros2_messages import DETECTION3D_ARRAY, MARKER_ARRAY

@@ -26,9 +26,9 @@ from clients.connect import ConnectConfig
 from clients.predictions import PredictionRecord, read_predictions
 from clients.replay import ReplayConfig, replay
 from contract import REQUIRED_FIELDS
-from model.data.pointcloud2 import POINTCLOUD2
-from model.data.readers import write_native_scan
-from model.data.recordings import choose_topic, read_recording
+from lidar.pointcloud2 import POINTCLOUD2
+from lidar.readers import write_native_scan
+from lidar.recordings import choose_topic, read_recording
 from phim.cli import main as app
 
 EVERY = 8  # every 8th point of each turn: fast CPU forwards

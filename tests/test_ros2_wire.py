@@ -24,7 +24,7 @@ from contract.ros2 import (
     default_stream_id,
     node_name,
 )
-from model.data.synthetic import synthetic_turn
+from lidar.synthetic import synthetic_turn
 from server import ros2_messages as messages
 from server.ros2_bridge import Ros2Config
 from server.ros2_messages import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2, Header

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from model.data.sectorizer import Spin, StreamSectorizer, detect_spin, sector_of_azimuth, split_scan
+from lidar.sectorizer import Spin, StreamSectorizer, detect_spin, sector_of_azimuth, split_scan
 from model.sectors import split_turn
 from tests.conftest import SHARED_DATA, kitti_scan
 

@@ -35,7 +35,7 @@ from contract import (
     decode_response,
     encode_sector,
 )
-from model.data.synthetic import synthetic_turn
+from lidar.synthetic import synthetic_turn
 from model.graph.engine import GraphStreamingDetector
 from model.sectors import split_turn
 from server.settings import Settings

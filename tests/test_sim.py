@@ -1,4 +1,4 @@
-"""The LiDAR simulator (model/data/sim): determinism, sweep order, beams vs real tables, labels, occlusion."""
+"""The LiDAR simulator (lidar/sim): determinism, sweep order, beams vs real tables, labels, occlusion."""
 
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ import yaml
 from click.testing import CliRunner
 from conftest import SHARED_DATA
 
-from model.data.sim import SceneConfig, Sensor, SimConfig, actors, load_elevations, sensor_spec, simulate
-from model.data.sim.ground import Ground
-from model.data.sim.raycast import Rays, SolidList
-from model.data.sim.scene import Scene
-from model.data.sim.simulate import cast_scene
-from model.data.types import LEVEL_1, LEVEL_2, LEVEL_2_MAX_POINTS, points_in_boxes
+from lidar.sim import SceneConfig, Sensor, SimConfig, actors, load_elevations, sensor_spec, simulate
+from lidar.sim.ground import Ground
+from lidar.sim.raycast import Rays, SolidList
+from lidar.sim.scene import Scene
+from lidar.sim.simulate import cast_scene
+from lidar.types import LEVEL_1, LEVEL_2, LEVEL_2_MAX_POINTS, points_in_boxes
 from model.sectors import sector_of_points
 
 HDL64E_TABLES = SHARED_DATA / "velodyne_hdl64e_calibration"

@@ -1,4 +1,4 @@
-"""The simulator's objects (model/data/sim/vehicles.py, people.py): tight label boxes around every part, body
+"""The simulator's objects (lidar/sim/vehicles.py, people.py): tight label boxes around every part, body
 types, glass that lets most rays through, wheels, articulated legs, strollers and parked trailers."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from model.data.sim import (
+from lidar.sim import (
     SceneConfig,
     Sensor,
     SimConfig,
@@ -20,13 +20,13 @@ from model.data.sim import (
     stats,
     vehicles,
 )
-from model.data.sim.ground import Ground
-from model.data.sim.layout import Occupancy, make_ground
-from model.data.sim.parts import FURNITURE, TARGET, Obstacles, TaggedSolidList
-from model.data.sim.raycast import BOX, OPAQUE, SURFACE, VOLUME, Rays, SolidList, Solids, cast_solids
-from model.data.sim.scene import Scene, make_roads, make_scene
-from model.data.sim.simulate import cast_scene
-from model.data.types import points_in_boxes
+from lidar.sim.ground import Ground
+from lidar.sim.layout import Occupancy, make_ground
+from lidar.sim.parts import FURNITURE, TARGET, Obstacles, TaggedSolidList
+from lidar.sim.raycast import BOX, OPAQUE, SURFACE, VOLUME, Rays, SolidList, Solids, cast_solids
+from lidar.sim.scene import Scene, make_roads, make_scene
+from lidar.sim.simulate import cast_scene
+from lidar.types import points_in_boxes
 
 HEIGHT = 1.73
 CFG = replace(SimConfig(), dropout=0.0, range_noise=0.0)

@@ -1,4 +1,4 @@
-"""The simulator's scenes (model/data/sim): layouts and their structure, vegetation, facades, crossfall,
+"""The simulator's scenes (lidar/sim): layouts and their structure, vegetation, facades, crossfall,
 and labels that keep clear of the scenery."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from model.data.sim import SceneConfig, Sensor, sensor_spec
-from model.data.sim.facades import URBAN_FACADE, Front, building
-from model.data.sim.ground import Ground
-from model.data.sim.layout import OPEN, SUBURBAN, URBAN, Road, make_ground
-from model.data.sim.parts import (
+from lidar.sim import SceneConfig, Sensor, sensor_spec
+from lidar.sim.facades import URBAN_FACADE, Front, building
+from lidar.sim.ground import Ground
+from lidar.sim.layout import OPEN, SUBURBAN, URBAN, Road, make_ground
+from lidar.sim.parts import (
     BUILDING,
     INTERIOR,
     SLAB,
@@ -21,9 +21,9 @@ from model.data.sim.parts import (
     Obstacles,
     TaggedSolidList,
 )
-from model.data.sim.raycast import Rays, SolidList, cast_solids
-from model.data.sim.scene import VEHICLE, make_scene
-from model.data.sim.vegetation import hedge
+from lidar.sim.raycast import Rays, SolidList, cast_solids
+from lidar.sim.scene import VEHICLE, make_scene
+from lidar.sim.vegetation import hedge
 
 HEIGHT = 1.73
 RAYS = Rays.spinning(1000, sensor_spec(Sensor.HDL64E).elevations_deg)
@@ -170,7 +170,7 @@ def test_crossfall_tilts_the_road_and_rays_land_on_it():
 
 
 def test_rays_of_a_moving_sensor_land_on_the_ground_from_where_they_start():
-    """A sensor moving during the sweep casts each firing from its own start (model.data.sim.ego): the
+    """A sensor moving during the sweep casts each firing from its own start (lidar.sim.ego): the
     ground is met from there, not from the origin (a 4 % grade and 1.5 m of travel: 6 cm off otherwise)."""
     road = Road(np.array([0.0, 1.75]), 0.3, 2, 3.5, (True, True), 2.2, 3.0, 0.15)
     ground = make_ground(np.random.default_rng(5), HEIGHT, 0.04, 0.1, [road], (0.02, 0.02))

@@ -1,4 +1,4 @@
-"""The simulator's sensor side (model/data/sim): presets, per-seed variation, ego motion and roof returns,
+"""The simulator's sensor side (lidar/sim): presets, per-seed variation, ego motion and roof returns,
 intensity per sensor, and the sim-vs-real comparison."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pytest
 from click.testing import CliRunner
 from conftest import SHARED_DATA
 
-from model.data.sim import SceneConfig, Sensor, SimConfig, sensor_spec, simulate
-from model.data.sim.compare import (
+from lidar.sim import SceneConfig, Sensor, SimConfig, sensor_spec, simulate
+from lidar.sim.compare import (
     HEIGHT_EDGES,
     RANGE_EDGES,
     Cloud,
@@ -22,13 +22,13 @@ from model.data.sim.compare import (
     compare,
     format_tables,
 )
-from model.data.sim.ego import sweep_origins
-from model.data.sim.ground import Ground
-from model.data.sim.raycast import SolidList
-from model.data.sim.scene import Scene
-from model.data.sim.sensors import PAIR_RANGE, PAIR_SPACING, Unit
-from model.data.sim.simulate import Source, cast_unit, draw_setup, simulate_sources
-from model.data.types import points_in_boxes
+from lidar.sim.ego import sweep_origins
+from lidar.sim.ground import Ground
+from lidar.sim.raycast import SolidList
+from lidar.sim.scene import Scene
+from lidar.sim.sensors import PAIR_RANGE, PAIR_SPACING, Unit
+from lidar.sim.simulate import Source, cast_unit, draw_setup, simulate_sources
+from lidar.types import points_in_boxes
 
 
 def _elevation(points: np.ndarray, z0: float = 0.0) -> np.ndarray:

@@ -9,8 +9,8 @@ import pytest
 import torch
 from conftest import kitti_scan
 
+from lidar.synthetic import synthetic_turn
 from model.config import MambaHistory, PHiMConfig, RefineConfig, ScanImpl, tiny
-from model.data.synthetic import synthetic_turn
 from model.detector import PHiM
 from model.ego import drop_ego_points
 from model.fold_bn import fold_batchnorms

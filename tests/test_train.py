@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
+from lidar.sources import SimSource, sim_seed
+from lidar.types import Predictions
 from model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from model.config import CLASS_NAMES, tiny
-from model.data.sources import SimSource, sim_seed
-from model.data.types import Predictions
 from model.detector import PHiM
 from model.eval.prediction_files import read_predictions, write_predictions
 from model.eval.runner import ScanResult, predict_scan, score
@@ -179,7 +179,7 @@ def test_ddp_under_torchrun_on_cpu(tmp_path: Path):
 
 def test_your_own_data_trains_evaluates_and_loads(tmp_path: Path):
     """The user's path: convert scans to native .npz, train on them, evaluate the run's checkpoint."""
-    from model.data.readers import write_labeled
+    from lidar.readers import write_labeled
 
     data = tmp_path / "native"
     data.mkdir()

@@ -8,8 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+from lidar.types import GroundTruth, LabeledScan, points_in_boxes
 from model.config import tiny
-from model.data.types import GroundTruth, LabeledScan, points_in_boxes
 from model.train.data import SampleConfig, SampleStream
 from model.train.gt_sampling import GTSamplingConfig, build_bank, paste_objects
 

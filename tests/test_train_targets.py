@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
+from lidar.readers import sector_of_xy
+from lidar.synthetic import synthetic_turn
+from lidar.types import GroundTruth, LabeledScan, points_in_boxes
 from model.config import HeadingCode, tiny
-from model.data.readers import sector_of_xy
-from model.data.synthetic import synthetic_turn
-from model.data.types import GroundTruth, LabeledScan, points_in_boxes
 from model.layers.head import HeadOutput, decode, decode_yaw, decoded_boxes, encode_yaw
 from model.layers.head_targets import TargetConfig, build_targets, gaussian_radius
 from model.train.data import AugmentConfig, SampleConfig, augment, make_sample

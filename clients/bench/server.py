@@ -42,10 +42,10 @@ from clients.connect import ConnectConfig, Transport, make_client
 from clients.options import zenoh_connect_option
 from clients.zenoh_session import open_session
 from contract import REQUIRED_FIELDS, encode_reply, encode_sector
-from model.data.readers import Spin, read_scan
-from model.data.samples import KITTI_000000
-from model.data.sectorizer import split_scan
-from model.data.synthetic import synthetic_turn
+from lidar.readers import Spin, read_scan
+from lidar.samples import KITTI_000000
+from lidar.sectorizer import split_scan
+from lidar.synthetic import synthetic_turn
 from phim.options import EnumValue, json_option
 from phim.progress import Progress, note
 

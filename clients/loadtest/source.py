@@ -11,9 +11,9 @@ import numpy as np
 
 from clients.loadtest.config import SourceConfig
 from contract import REQUIRED_FIELDS
-from model.data.readers import find_scans, read_scan
-from model.data.sectorizer import Spin, split_scan
-from model.data.synthetic import synthetic_turn
+from lidar.readers import find_scans, read_scan
+from lidar.sectorizer import Spin, split_scan
+from lidar.synthetic import synthetic_turn
 
 Turn = list[tuple[int, np.ndarray]]  # (sector_index, (N, 4) float32) in sweep order
 

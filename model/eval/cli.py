@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING
 import click
 
 from contract import DEFAULT_MIN_SCORE
+from lidar.selection import ClassMap, Split
 from model.config import MambaHistory, Precision
-from model.data.selection import ClassMap, Split
 from model.tools.options import (
     checkpoint_option,
     class_map_option,
@@ -25,7 +25,7 @@ from model.tools.options import (
 from phim.options import json_option
 
 if TYPE_CHECKING:
-    from model.data.sources import FileSource, SimSource
+    from lidar.sources import FileSource, SimSource
 
 NewFile = click.Path(dir_okay=False, path_type=Path)
 Folder = click.Path(file_okay=False, path_type=Path)
@@ -112,8 +112,8 @@ def eval_cmd(
 ) -> None:
     """Waymo-style AP/APH per class and level, per buffer fill (the full turn and each buffered count), the
     vehicle AP at IoU 0.5 too, and the vehicle check (recall of well-seen vehicles, false boxes per scan)."""
+    from lidar.types import LabeledScan
     from model.checkpoint import resolve_checkpoint
-    from model.data.types import LabeledScan
     from model.device import pick_device
     from model.eval.metrics import count_ground_truths, format_table
     from model.eval.prediction_files import read_predictions_by_fill, write_predictions
@@ -174,8 +174,8 @@ def eval_cmd(
 def _source(data: str, seed: int, class_map: ClassMap) -> SimSource | FileSource:
     """The evaluated scans: custom:DIR's val split (ImageSets/val.txt when present) with its class map, every
     file checked now (a bad one: a usage error naming it, before any model runs)."""
-    from model.data.custom import check_custom_files
-    from model.data.sources import FileSource, scan_source
+    from lidar.custom import check_custom_files
+    from lidar.sources import FileSource, scan_source
 
     try:
         source = scan_source(data, seed, shuffle=False, split=Split.VAL, classes=class_map)

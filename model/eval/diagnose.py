@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from model.data.readers import feature_columns, sector_of_xy
-from model.data.types import LabeledScan
+from lidar.readers import feature_columns, sector_of_xy
+from lidar.types import LabeledScan
 from model.detector import PHiM
 from model.eval.metrics import MetricsConfig
 from model.geometry.boxes import rotated_iou_3d_aligned

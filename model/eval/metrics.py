@@ -27,13 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from lidar.types import GroundTruth, Predictions
 from model.config import CLASS_NAMES
-from model.data.types import GroundTruth, Predictions
 from model.eval.assignment import max_weight_matching
 from model.geometry.boxes import rotated_iou_3d
 
 LEVEL_NAMES: tuple[str, str] = ("LEVEL_1", "LEVEL_2")
-LEVELS: tuple[int, int] = (1, 2)  # difficulty values of model.data.types (LEVEL_1, LEVEL_2)
+LEVELS: tuple[int, int] = (1, 2)  # difficulty values of lidar.types (LEVEL_1, LEVEL_2)
 # Waymo's cut-offs: i * 0.01 for i < 100, then 1.0, stored as float32 (metrics.proto `repeated float`)
 WAYMO_SCORE_CUTOFFS: tuple[float, ...] = (*(float(np.float32(i * 0.01)) for i in range(100)), 1.0)
 MIN_BOX_DIM = 1e-2  # iou.cc: IoU is 0 when any length / width / height is at most this

@@ -1,5 +1,5 @@
 """A BEV picture of one evaluated scan: points, ground truth (dashed) and the full-turn predictions a server
-at `min_score` would return (solid), drawn as `phim replay --frames` draws a reply (model.data.pictures)."""
+at `min_score` would return (solid), drawn as `phim replay --frames` draws a reply (lidar.pictures)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from contract import DEFAULT_MIN_SCORE
+from lidar.pictures import BoxSet, draw_bev
+from lidar.types import LabeledScan, Predictions
 from model.config import CLASS_NAMES
-from model.data.pictures import BoxSet, draw_bev
-from model.data.types import LabeledScan, Predictions
 from model.eval.runner import ScanResult
 
 

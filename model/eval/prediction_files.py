@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lidar.types import Predictions
 from model.config import CLASS_NAMES
-from model.data.types import Predictions
 from model.eval.runner import ScanResult
 
 FORMAT = "phim.predictions"

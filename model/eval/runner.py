@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from lidar.readers import feature_columns, sector_of_xy
+from lidar.types import GroundTruth, LabeledScan, Predictions
 from model.config import CLASS_NAMES, Precision
-from model.data.readers import feature_columns, sector_of_xy
-from model.data.types import GroundTruth, LabeledScan, Predictions
 from model.detector import PHiM
 from model.ego import drop_ego_boxes, drop_ego_points
 from model.eval.metrics import MetricsConfig, crop_to_fov, evaluate

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+from lidar.types import LabeledScan, Predictions
 from model.config import Precision
-from model.data.types import LabeledScan, Predictions
 from model.detector import PHiM
 from model.eval.metrics import MetricsConfig, evaluate
 from model.eval.runner import ScanResult, crop_prediction, scan_sectors, truths_by_fill

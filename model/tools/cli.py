@@ -38,8 +38,8 @@ def load_turn(
     said on stderr."""
     import torch
 
-    from model.data.samples import KITTI_000000
-    from model.data.synthetic import synthetic_turn
+    from lidar.samples import KITTI_000000
+    from lidar.synthetic import synthetic_turn
     from model.sectors import load_kitti_bin
 
     if points is not None:
@@ -54,7 +54,7 @@ def load_turn(
             f"running on {source} instead (--points FILE: a scan of your own)",
         )
     if scene:
-        from model.data.sim.simulate import simulate
+        from lidar.sim.simulate import simulate
 
         return torch.from_numpy(simulate(seed=3).points), source
     return torch.from_numpy(synthetic_turn(seed=0)), source

@@ -9,8 +9,8 @@ from typing import Any
 
 import click
 
+from lidar.selection import ClassMap, Split, parse_class_map
 from model.config import CONFIGS, Engine, Precision
-from model.data.selection import ClassMap, Split, parse_class_map
 from phim.options import EnumValue
 
 Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
@@ -56,7 +56,7 @@ def data_option(split: Split) -> Decorator:
     errors), a custom:DIR folder for `split` (training: ImageSets/train.txt, evaluation: val.txt)."""
 
     def check(ctx: click.Context, param: click.Parameter, spec: str) -> str:
-        from model.data.datasets import DataKind, list_scan_paths, parse_data_spec
+        from lidar.datasets import DataKind, list_scan_paths, parse_data_spec
 
         try:
             parsed = parse_data_spec(spec)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from model.data.selection import ClassMap, Split
+from lidar.selection import ClassMap, Split
 from model.tools.options import (
     class_map_option,
     config_option,
@@ -96,9 +96,9 @@ def train_cmd(
     """Train a model (streaming, as the paper trains); torchrun runs the same command with DDP."""
     import torch
 
+    from lidar.custom import CustomDataError
+    from lidar.sources import scan_source
     from model.checkpoint import checkpoint_path
-    from model.data.custom import CustomDataError
-    from model.data.sources import scan_source
     from model.train.loop import TrainConfig, train
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -21,9 +21,9 @@ import torch
 from torch import Tensor
 from torch.utils.data import IterableDataset, get_worker_info
 
+from lidar.readers import feature_columns, sector_of_xy
+from lidar.types import LabeledScan, Spin
 from model.config import PHiMConfig
-from model.data.readers import feature_columns, sector_of_xy
-from model.data.types import LabeledScan, Spin
 from model.layers.head_targets import BEVTargets, TargetConfig, build_targets
 from model.train.gt_sampling import GTSamplingConfig, ObjectBank, build_bank, paste_objects
 

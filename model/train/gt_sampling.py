@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model.data.types import GroundTruth, LabeledScan, points_in_boxes
+from lidar.types import GroundTruth, LabeledScan, points_in_boxes
 
 
 @dataclass(frozen=True)

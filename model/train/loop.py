@@ -25,11 +25,11 @@ from typing import Any
 import torch
 from torch import nn
 
+from lidar.datasets import DataKind, parse_data_spec
+from lidar.selection import ClassMap, parse_class_map
+from lidar.sources import scan_source
 from model.checkpoint import init_weights, save_checkpoint
 from model.config import POINT_FIELDS, PHiMConfig, get_config
-from model.data.datasets import DataKind, parse_data_spec
-from model.data.selection import ClassMap, parse_class_map
-from model.data.sources import scan_source
 from model.detector import PHiM
 from model.train.data import SampleConfig, SampleStream, TrainSample
 from model.train.distributed import Dist
@@ -45,7 +45,7 @@ METRICS = ("step", "loss", "heatmap", "reg", "iou_branch", "iou_loss", "mean_iou
 class TrainConfig:
     config: str = "tiny"  # model config name
     data: str = "sim"  # a data spec: sim, kitti:DIR, nuscenes:DIR, native:DIR, custom:DIR
-    class_map: str = ""  # custom:DIR: label class -> PHiM class (model.data.selection.parse_class_map)
+    class_map: str = ""  # custom:DIR: label class -> PHiM class (lidar.selection.parse_class_map)
     steps: int = 6000
     batch_size: int = 1  # scans per step and process
     lr: float = 3e-3  # one-cycle peak

@@ -19,8 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from lidar.types import LabeledScan
 from model.config import RefineConfig
-from model.data.types import LabeledScan
 from model.detector import PHiM
 from model.eval.metrics import iou_matrix
 from model.eval.runner import scan_sectors

@@ -83,8 +83,8 @@ def _stream_proposals(job: tuple[Path, RefineConfig, int, int]) -> Proposals:
     """In a worker process of one thread: the detector's proposals on `scans` scans of sim stream `seed`."""
     import torch
 
+    from lidar.sources import scan_source
     from model.checkpoint import load_checkpoint
-    from model.data.sources import scan_source
     from model.train.refine import proposals
 
     path, cfg, seed, scans = job

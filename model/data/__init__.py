@@ -1,1 +1,0 @@
-"""Data, numpy only: labelled scans from the simulator and from real recordings (see model/data/types.py)."""
