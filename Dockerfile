@@ -21,6 +21,8 @@ RUN apt-get update \
 WORKDIR /opt/phim
 COPY pyproject.toml README.md LICENSE constraints.txt ./
 COPY contract ./contract
+COPY lidar ./lidar
+COPY ros ./ros
 COPY phim ./phim
 COPY model ./model
 COPY server ./server

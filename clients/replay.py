@@ -8,8 +8,8 @@ points, the boxes the reply returned and the labels when they sit beside the sca
 nuScenes boxes), drawn as `phim eval --pictures` draws (lidar.pictures).
 
 The scans come from scan files (lidar.readers) or from a ROS 2 recording (rosbag2 folder, .mcap, .db3:
-lidar.recordings, one PointCloud2 message per turn). With `mcap`, the points of each scan and the
-boxes of its last sector are written as a Foxglove scene (phim.scene) at the scan's sensor time.
+ros.recordings, one PointCloud2 message per turn). With `mcap`, the points of each scan and the
+boxes of its last sector are written as a Foxglove scene (ros.scene) at the scan's sensor time.
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from contract import REQUIRED_FIELDS, SectorMessage
 from lidar.labels import labels_for
 from lidar.pictures import BoxSet, draw_bev
 from lidar.readers import Scan, find_scans, read_scan
-from lidar.recordings import is_recording, read_recording
 from lidar.sectorizer import split_scan
-from phim.scene import SceneChannels, record_scenes
+from ros.recordings import is_recording, read_recording
+from ros.scene import SceneChannels, record_scenes
 
 log = logging.getLogger(__name__)
 

@@ -288,11 +288,6 @@ def _wire_array(a: np.ndarray) -> WireArray:
     return WireArray(a.dtype.str, list(a.shape), memoryview(a.reshape(-1).view(np.uint8)))
 
 
-def array_to_wire(a: np.ndarray) -> dict[str, Any]:
-    """An array -> {"dtype", "shape", "data"} with explicit little-endian dtype and C-order bytes (a view)."""
-    return msgspec.structs.asdict(_wire_array(a))
-
-
 def encode_sector(msg: SectorMessage, media_type: str = MSGPACK) -> bytes:
     points = np.ascontiguousarray(msg.points, dtype=POINT_DTYPE)
     if points.ndim != 2 or points.shape[1] != len(msg.fields):

@@ -163,11 +163,6 @@ class Node:
         return f"{self._head(entity_id, kind)}/{tail}"
 
 
-def graph_key(domain_id: int) -> str:
-    """Every liveliness token of a domain's ROS graph."""
-    return f"{ADMIN_SPACE}/{domain_id}/**"
-
-
 # -------------------------------------------------------------------------------------------- attachment
 
 

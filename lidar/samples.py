@@ -10,7 +10,7 @@ from pathlib import Path
 from lidar.labels import FileFrame
 
 SAMPLES_DIR = Path(
-    os.environ.get("PHIM_SAMPLES_DIR") or Path(__file__).resolve().parents[2].parent / "shared" / "data"
+    os.environ.get("PHIM_SAMPLES_DIR") or Path(__file__).resolve().parents[1].parent / "shared" / "data"
 )
 KITTI_VELODYNE = SAMPLES_DIR / "kitti_object" / "velodyne"  # KITTI object scans 000000.bin ...
 KITTI_000000 = KITTI_VELODYNE / "000000.bin"

@@ -114,7 +114,3 @@ def points_in_boxes(xyz: np.ndarray, boxes: np.ndarray) -> np.ndarray:
         hit = (np.abs(u) <= half_l[j]) & (np.abs(v) <= half_w[j]) & (np.abs(d[:, 2]) <= half_h[j])  # (K,)
         inside[idx[hit], j] = True
     return inside
-
-
-def class_index(name: str) -> int:
-    return CLASS_NAMES.index(name)

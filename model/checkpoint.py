@@ -14,13 +14,15 @@ from typing import Any
 
 import torch
 
-from model.config import PHiMConfig
+from model.config import PHiMConfig, get_config, tiny
 from model.detector import PHiM
 
 FORMAT = "phim-checkpoint"
 # the shipped default model (docs/model-card.md); `--checkpoint default` names it
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "weights" / "tiny-sim.pt"
 VERSION = 1
+DEFAULT_SEED = 0  # of the untrained weights a named config is served with (`init_model`)
+DEFAULT_SOURCE = f"shipped default: {DEFAULT_CHECKPOINT.name} (config 'tiny', trained on the simulator)"
 
 
 class CheckpointError(ValueError):
@@ -148,3 +150,18 @@ def resolve_checkpoint(name: str | Path, device: str | torch.device = "cpu") -> 
     """'default' (the shipped model) or a checkpoint path -> (the model on `device`, eval mode; its path)."""
     path = checkpoint_path(name)
     return load_checkpoint(path, device=device).eval(), path
+
+
+def load_default_model(device: str | torch.device = "cpu") -> tuple[PHiM, str]:
+    """-> (the shipped default model on `device`, a description of where its weights come from). The
+    default is the `tiny` config trained on the LiDAR simulator (docs/model-card.md;
+    `bash scripts/train_default.sh` reproduces it)."""
+    return load_checkpoint(DEFAULT_CHECKPOINT, expected=tiny(), device=device).eval(), DEFAULT_SOURCE
+
+
+def init_model(config: str, device: str | torch.device = "cpu") -> tuple[PHiM, str]:
+    """A named config with untrained fixed-seed weights (e.g. to measure the paper config's speed)."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(DEFAULT_SEED)
+        model = PHiM(get_config(config))
+    return model.to(device).eval(), f"config {config!r}, untrained weights from seed {DEFAULT_SEED}"

@@ -31,8 +31,9 @@ class Engine(enum.StrEnum):
     """How a streaming step runs (the weights are the same)."""
 
     EAGER = "eager"  # model.stream.StreamingDetector: data-dependent shapes, the reference
-    FIXED = "fixed"  # model.graph: the fixed-shape step, run op by op (the graph's own plain twin)
-    GRAPH = "graph"  # model.graph: the fixed-shape step through torch.compile(fullgraph=True)
+    # model.graph.engine.GraphStreamingDetector: the fixed-shape step through torch.compile(fullgraph=True)
+    # (its plain twin, the same step op by op, is GraphStreamingDetector(compile=False): tests and tools)
+    GRAPH = "graph"
 
 
 class Precision(enum.StrEnum):

@@ -4,9 +4,10 @@ A roof-mounted sensor sees its own car: a few returns off the roof, the mirrors 
 metre or two (KITTI's HDL-64E: 36-42 points a scan at 1-2 m, every scan at the same places), which the
 detector, trained on simulated scans without an ego car, reads as an object. `PHiMConfig.ego` is the car's
 footprint, a rectangle in the sensor frame (docs/model.md, "The ego vehicle"). Every path that runs the
-model on a sensor's points applies it the same way: the streaming step (eager and fixed-shape), the
-whole-turn forward and the evaluation drop the footprint's points first (the box refiner reads what is
-left), and drop the boxes whose centre lies in it last. None: every point is read, every box returned.
+model on a sensor's points applies it the same way: the streaming step (both engines, in one place:
+`model.engine_base.EngineBase.step`), the whole-turn forward and the evaluation drop the footprint's
+points first (the box refiner reads what is left), and drop the boxes whose centre lies in it last. None:
+every point is read, every box returned.
 """
 
 from __future__ import annotations

@@ -42,8 +42,3 @@ def autocast(precision: Precision, device: torch.device) -> contextlib.AbstractC
     if precision is Precision.FP32:
         return contextlib.nullcontext()
     return torch.autocast(device.type, dtype=torch.bfloat16)
-
-
-def no_autocast(device: torch.device) -> contextlib.AbstractContextManager:
-    """Autocast off (float32 math inside an autocast region, e.g. a recurrence)."""
-    return torch.autocast(device.type, enabled=False)

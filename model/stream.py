@@ -1,9 +1,10 @@
-"""Streaming API: the only model surface the server uses.
+"""The eager engine: the model run as it is written, with data-dependent shapes (the reference).
 
-A stream (one vehicle's LiDAR) has an explicit, immutable `StreamState`. `StreamingDetector.step` runs one
-forward over a batch of sectors from different streams, each with its own state, and returns each sector's
-detections plus each stream's new state. Input states are never modified, so a failed batch leaves every
-stream exactly as it was.
+A stream (one vehicle's LiDAR) has an explicit, immutable `StreamState`. `StreamingDetector.step`
+(`model.engine_base.EngineBase`) runs one forward over a batch of sectors from different streams, each with
+its own state, and returns each sector's detections plus each stream's new state. Input states are never
+modified, so a failed batch leaves every stream exactly as it was, and one fresh state serves every new
+stream.
 """
 
 from __future__ import annotations
@@ -16,14 +17,12 @@ from torch import Tensor
 
 from model.config import Engine, Precision
 from model.detector import PHiM, SectorFeatures
-from model.ego import drop_ego_boxes, drop_ego_points
+from model.engine_base import EngineBase, EngineInfo, SectorResult
 from model.fold_bn import fold_batchnorms
-from model.geometry.boxes import Detections
 from model.layers.head import decode
 from model.layers.mamba import MambaState
 from model.layers.phim_block import StreamLayout
 from model.layers.refine import refine_streams
-from model.layers.voxelize import PointsError, validate_points
 from model.precision import autocast, check_precision
 
 log = logging.getLogger(__name__)
@@ -43,15 +42,7 @@ class StreamState:
         return len(self.buffer)
 
 
-@dataclass(frozen=True)
-class SectorResult:
-    detections: Detections  # boxes over everything the buffer covers (up to 360 degrees)
-    context_sectors: int  # sectors the prediction saw: the new one plus the buffered ones
-    points_kept: int
-    points_out_of_range: int
-
-
-class StreamingDetector:
+class StreamingDetector(EngineBase):
     def __init__(self, model: PHiM, fold_bn: bool = True, precision: Precision = Precision.FP32):
         """Runs `model` in eval mode; with `fold_bn` an inference copy of it with every BatchNorm folded into
         the conv before it (`model.fold_bn`: the same outputs up to float rounding, a little faster). The
@@ -61,6 +52,8 @@ class StreamingDetector:
         self.cfg = model.cfg
         self.engine = Engine.EAGER
         self.precision = precision
+        # every new stream's state: immutable, and a step never writes its input states
+        self._fresh = StreamState(mamba=tuple(self.model.init_states(1)), buffer=(), sectors_seen=0)
         log.info(
             "streaming detector: config=%s device=%s scan=%s batchnorms folded=%s precision=%s",
             self.cfg.name,
@@ -74,34 +67,33 @@ class StreamingDetector:
     def device(self) -> torch.device:
         return self.model.device
 
-    def init_state(self) -> StreamState:
-        states = self.model.init_states(1)
-        return StreamState(mamba=tuple(states), buffer=(), sectors_seen=0)
+    def new_state(self) -> StreamState:
+        """A new stream's initial state (no tensor is made: the fresh state is shared)."""
+        return self._fresh
 
-    def reset(self, state: StreamState | None = None) -> StreamState:
+    def release(self, state: StreamState) -> None:
+        """Nothing to give back: a state is dropped with its stream."""
+
+    def reset(self, state: StreamState) -> StreamState:
         """A fresh state; the old one is simply dropped."""
-        return self.init_state()
+        return self._fresh
 
-    def validate(self, points: Tensor) -> None:
-        """Raise PointsError if a sector's points can't be run (the server calls this before queueing)."""
-        validate_points(points)
-        if points.dtype != torch.float32:
-            raise PointsError(f"points: dtype {points.dtype}; expected float32")
+    def describe(self) -> EngineInfo:
+        return self._info()  # no fixed shapes, no slots: batches run unpadded
 
-    @torch.inference_mode()
-    def step(
+    def warm_up(self, sectors: int, max_batch: int = 1, headroom: float = 1.0) -> float:
+        """Before a server is ready: the CPU NMS kernels compiled, then `sectors` single-stream steps of a
+        synthetic turn (filling the sector buffer) and one batch of two streams (`max_batch` and `headroom`:
+        nothing to plan here). The mean seconds of one step (0.1 if none ran)."""
+        turn = self._warm_up_turn(sectors)
+        if turn is None:
+            return 0.1
+        return self._timed_steps(turn, sectors, self.new_state(), self.new_state() if sectors >= 2 else None)
+
+    def _step(
         self, points: list[Tensor], states: list[StreamState]
     ) -> tuple[list[SectorResult], list[StreamState]]:
-        """One sector per stream: points[i] (N_i, C) float32 goes with states[i].
-
-        Returns per stream its SectorResult and its new StreamState (same order). The points on the ego
-        vehicle (`cfg.ego`, model.ego) are dropped first, the boxes centred on it last.
-        """
-        if len(points) != len(states):
-            raise ValueError(f"{len(points)} sectors but {len(states)} states")
-        for p in points:
-            self.validate(p)
-        points = drop_ego_points(points, self.cfg.ego)
+        """The batch checked, the ego vehicle's points dropped (`EngineBase.step`)."""
         dev = self.device
         host, points = points, [p.to(dev, non_blocking=True) for p in points]
         layout = StreamLayout.one_per_item(len(points), dev)
@@ -117,7 +109,6 @@ class StreamingDetector:
         detections = decode(maps, self.cfg.head, self.cfg.bev)
         buffered = [s.points for s in states]  # the refiner reads the points where the caller holds them
         detections, kept = refine_streams(self.model.refiner, detections, buffered, host, keep)
-        detections = [drop_ego_boxes(d, self.cfg.ego) for d in detections]
         results, new_states = [], []
         for i, (s, scene, det) in enumerate(zip(states, scenes, detections, strict=True)):
             idx = torch.tensor([i], device=dev)

@@ -1,5 +1,5 @@
 """NMS of real candidates on the host, for one stream and a batch: the batch kernel, the numba NMS item by
-item, and its torch twin (model/geometry/nms.py, nms_cpu.py).
+item, and its torch twin (model/geometry/nms.py, model/ops/nms_numba.py).
 
 Usage: PYTHONPATH=. python scripts/bench_nms.py [--rounds 2] [--streams 1,32]
 Streams KITTI 000000 (or a synthetic turn) through the fixed-shape step of `tiny` (shipped weights) and
@@ -38,7 +38,7 @@ def candidates(config: str, checkpoint: str | None, steps: int) -> tuple[list[Ca
         return select_detections(c, head)
 
     engine.select_detections = keep  # the step's NMS call, seen from here
-    state = det.init_state()
+    state = det.new_state()
     for k in range(steps):
         _, (state,) = det.step([sectors[k % len(sectors)]], [state])
     engine.select_detections = select_detections

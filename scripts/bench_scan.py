@@ -16,9 +16,9 @@ import time
 
 import torch
 
-from model.config import Engine, ScanImpl
+from model.config import ScanImpl
 from model.detector import PHiM
-from model.graph.engine import streaming_detector
+from model.engine import engine_for
 from model.sectors import split_turn
 from model.tools.bench import _Streams
 from model.tools.cli import load_model, load_turn
@@ -67,7 +67,7 @@ def stream_steps(impls: list[ScanImpl], turns: int) -> dict[ScanImpl, list[float
     for impl in impls:  # the detector works on its own (BN-folded) copy: set the scan before building it
         model = load_model("tiny", "default", "cpu")
         model.set_scan(impl)
-        runs[impl] = _Streams(streaming_detector(model, Engine.EAGER), split_turn(turn, 4))
+        runs[impl] = _Streams(engine_for(model), split_turn(turn, 4))
     _alternate(runs, 2, lambda _, run: run.turn())  # warm-up
     return _alternate(runs, turns, lambda _, run: run.turn())
 

@@ -13,11 +13,12 @@ from dataclasses import dataclass, field
 import torch
 
 from lidar.samples import KITTI_VELODYNE
+from model.checkpoint import load_default_model
 from model.config import Engine, Precision
+from model.engine import EngineSettings, StreamEngine, engine_for
 from model.geometry.boxes import Detections
-from model.graph.engine import Detector, GraphStreamingDetector, streaming_detector
+from model.graph.engine import GraphStreamingDetector
 from model.sectors import load_kitti_bin, split_turn
-from server.default_model import load_default_model
 
 MATCH_M = 0.05
 SCANS = range(6)  # KITTI object 000000-000005
@@ -53,10 +54,10 @@ class Agreement:
         )
 
 
-def full_turn(det: Detector, sectors: list[torch.Tensor]) -> Detections:
+def full_turn(det: StreamEngine, sectors: list[torch.Tensor]) -> Detections:
     if isinstance(det, GraphStreamingDetector):
         det.calibrate(sectors)
-    state = det.init_state()
+    state = det.new_state()
     for s in sectors:
         (result,), (state,) = det.step([s], [state])
     return result.detections.to(torch.device("cpu"))
@@ -68,7 +69,7 @@ def main() -> None:
     parser.add_argument("--engine", type=Engine, default=Engine.EAGER)
     args = parser.parse_args()
     model = load_default_model(args.device)[0]
-    fp32, bf16 = (streaming_detector(model, args.engine, precision=p) for p in Precision)
+    fp32, bf16 = (engine_for(model, EngineSettings(engine=args.engine, precision=p)) for p in Precision)
     by_score = {0.3: Agreement(), 0.5: Agreement()}
     for i in SCANS:
         turn = load_kitti_bin(str(KITTI_VELODYNE / f"{i:06d}.bin"))

@@ -19,7 +19,8 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 from model.config import Engine, Precision
-from model.graph.engine import GraphStreamingDetector, streaming_detector
+from model.engine import EngineSettings, engine_for
+from model.graph.engine import GraphStreamingDetector
 from model.sectors import split_turn
 from model.tools.cli import load_model, load_turn
 
@@ -45,14 +46,15 @@ def main() -> None:
     turn, source = load_turn(None, fallback_kitti=True)
     dev = model.device
     cuda = dev.type == "cuda"
-    det = streaming_detector(
-        model, Engine(a.engine), precision=Precision(a.precision), sector_points=a.sector_points
+    settings = EngineSettings(
+        engine=Engine(a.engine), precision=Precision(a.precision), sector_points=a.sector_points
     )
+    det = engine_for(model, settings)
     sectors = [s.to(dev) for s in split_turn(turn, model.cfg.sectors_per_turn)]
     t0 = time.perf_counter()
     if isinstance(det, GraphStreamingDetector):
         det.calibrate(sectors)
-    states = [det.init_state() for _ in range(a.batch)]
+    states = [det.new_state() for _ in range(a.batch)]
 
     def step(k: int) -> float:
         nonlocal states

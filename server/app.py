@@ -30,12 +30,9 @@ from contract import (
     encode_error,
     encode_reply,
 )
-from model.checkpoint import load_checkpoint
-from model.config import EgoFootprint, Engine, Precision, get_config
-from model.device import pick_device
-from model.graph.engine import Detector, streaming_detector
+from model.config import Engine, Precision
+from model.engine import EngineSettings, StreamEngine, build_engine
 from server.auth import Grant, TokenFile
-from server.default_model import init_model, load_default_model
 from server.metrics import Metrics
 from server.openapi import error_responses, publish_sector_route
 from server.settings import Settings
@@ -63,52 +60,37 @@ class Services:
     tokens: TokenFile | None  # None: no authentication (docs/security.md)
 
 
-def build_detector(settings: Settings) -> tuple[Detector, str]:
-    """The model the settings ask for, on its device -> (detector, where its weights come from)."""
-    device = pick_device(settings.device)
-    if settings.checkpoint is None:
-        model, source = init_model(settings.config, device) if settings.config else load_default_model(device)
-    else:
-        expected = get_config(settings.config) if settings.config else None
-        model, source = (
-            load_checkpoint(settings.checkpoint, expected, device),
-            f"checkpoint {settings.checkpoint}",
-        )
-    if not settings.refiner:
-        model.drop_refiner()
-    if settings.ego_footprint is not None:  # () is 'off'
-        model.set_ego(EgoFootprint(*settings.ego_footprint) if settings.ego_footprint else None)
-    det = streaming_detector(
-        model,
-        Engine(settings.engine),
-        settings.sector_voxels,
-        settings.max_streams,
-        Precision(settings.precision),
-        settings.sector_points,
-        settings.bev_crop,
+def engine_settings(settings: Settings) -> EngineSettings:
+    """The engine the server's settings name (`model.engine`): one stream-state slot per live stream."""
+    return EngineSettings(
+        checkpoint=settings.checkpoint,
+        config=settings.config,
+        device=settings.device,
+        engine=Engine(settings.engine),
+        precision=Precision(settings.precision),
+        refiner=settings.refiner,
+        ego_footprint=settings.ego_footprint,
+        slots=settings.max_streams,
+        sector_voxels=settings.sector_voxels,
+        sector_points=settings.sector_points,
+        bev_crop=settings.bev_crop,
     )
-    log.info(
-        "model: config=%s device=%s engine=%s precision=%s scan=%s refiner=%s weights=%s",
-        det.cfg.name,
-        det.device,
-        settings.engine,
-        settings.precision,
-        det.cfg.backbone.mamba.scan.value,
-        "yes" if model.refiner is not None else "no",
-        source,
-    )
-    return det, source
+
+
+def build_detector(settings: Settings) -> tuple[StreamEngine, str]:
+    """The engine the settings ask for, its weights loaded -> (engine, where its weights come from)."""
+    return build_engine(engine_settings(settings))
 
 
 def create_app(
-    settings: Settings, detector: Detector | None = None, model_source: str = "given detector"
+    settings: Settings, detector: StreamEngine | None = None, model_source: str = "given detector"
 ) -> FastAPI:
     """The app; `detector` (already built) skips loading the model the settings name (tests share one)."""
     tokens = TokenFile(settings.auth_tokens) if settings.auth_tokens is not None else None
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        def load() -> tuple[Detector, str]:  # runs in the worker's device thread
+        def load() -> tuple[StreamEngine, str]:  # runs in the worker's device thread
             return (detector, model_source) if detector is not None else build_detector(settings)
 
         metrics = Metrics()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import enum
 import faulthandler
 import logging
+import re
 import signal
 import sys
 import types
@@ -17,12 +18,13 @@ import click
 from pydantic import ValidationError
 from pydantic.fields import FieldInfo
 
-from server.settings import Settings
+from server.settings import SettingGroup, Settings
 
 if TYPE_CHECKING:
     import uvicorn
 
 ENV_PREFIX = "PHIM_"
+HELP_COLUMN = 28  # option names up to this wide keep their help on their line
 
 
 def _click_type(annotation: Any) -> click.ParamType | type:
@@ -40,6 +42,9 @@ def _click_type(annotation: Any) -> click.ParamType | type:
     return annotation
 
 
+DESCRIBED_DEFAULT = re.compile(r"(?P<text>.*?) ?\[default: (?P<default>[^\]]*)\](?P<end>\.?)")
+
+
 def _default_text(name: str, field: FieldInfo) -> str:
     if field.default_factory is not None or field.default is None:
         return ""  # the description says what an unset value means
@@ -53,14 +58,45 @@ def _default_text(name: str, field: FieldInfo) -> str:
     return f"; default: {value}"
 
 
+def setting_group(field: FieldInfo) -> SettingGroup:
+    """The help section a setting's annotation names (`Annotated[int, SettingGroup.LIMITS]`)."""
+    (group,) = [m for m in field.metadata if isinstance(m, SettingGroup)]
+    return group
+
+
 def settings_option(name: str, field: FieldInfo) -> click.Option:
     """One flag per setting: --<name> (a bool `x_enabled` or `x` is --x/--no-x), never read from the
     environment by click (pydantic-settings does that), None when not given."""
     flag = name.removesuffix("_enabled").replace("_", "-")
-    help_text = f"{field.description} [env var: {ENV_PREFIX}{name.upper()}{_default_text(name, field)}]"
+    text, default = str(field.description), _default_text(name, field)
+    described = DESCRIBED_DEFAULT.fullmatch(text)  # "... [default: half of queue_size]." for an unset value
+    if described and not default:
+        text, default = described["text"] + described["end"], f"; default: {described['default']}"
+    help_text = f"{text} [env var: {ENV_PREFIX}{name.upper()}{default}]"
     if field.annotation is bool:
         return click.Option([f"--{flag}/--no-{flag}", name], default=None, help=help_text)
     return click.Option([f"--{flag}", name], type=_click_type(field.annotation), default=None, help=help_text)
+
+
+class GroupedCommand(click.Command):
+    """A command whose help lists its options by setting group, one section each (--help last)."""
+
+    def __init__(self, *args: Any, groups: dict[str, SettingGroup], **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.groups = groups  # parameter name -> its section
+
+    def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        sections: dict[str, list[tuple[str, str]]] = {g.value: [] for g in SettingGroup}
+        sections["Other"] = []
+        for param in self.get_params(ctx):
+            row = param.get_help_record(ctx)
+            if row is not None:  # the names padded: one column for every section
+                group = self.groups.get(param.name or "")
+                sections[group.value if group else "Other"].append((row[0].ljust(HELP_COLUMN), row[1]))
+        for title, rows in sections.items():
+            if rows:
+                with formatter.section(title):
+                    formatter.write_dl(rows, col_max=HELP_COLUMN)
 
 
 def _serve(**flags: Any) -> None:
@@ -71,10 +107,11 @@ def _serve(**flags: Any) -> None:
     run_server(settings)
 
 
-serve = click.Command(
+serve = GroupedCommand(
     "serve",
     callback=_serve,
     params=[settings_option(name, field) for name, field in Settings.model_fields.items()],
+    groups={name: setting_group(field) for name, field in Settings.model_fields.items()},
     help="Serve the detector over HTTP and zenoh until SIGTERM/SIGINT (then drain and exit).",
     context_settings={"max_content_width": 110},
 )

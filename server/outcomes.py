@@ -1,5 +1,5 @@
 """A sector's answer from its step outcome: its detections scored at least the sector's `min_score` (else the
-server's), or its own error when the step rejected it."""
+server's), or its own error when the step rejected it; a queued sector's error when it never ran."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from contract import DetectionsReply, ErrorCode, ServiceError, Timings
-from model.graph.engine import SectorOutcome, SectorRejected
+from model.engine import SectorOutcome, SectorRejected
 from server.streams import Pending
 
 
@@ -26,7 +26,7 @@ def sector_answer(
     """cold: the sector ran on a fresh state; t0: time.monotonic() when the forward started; model_s: its
     seconds; worker_id: the worker that ran it; min_score: the server's threshold, unless the sector has
     its own."""
-    if isinstance(r, SectorRejected):  # too big for the fixed-shape step: this sector only, state unchanged
+    if isinstance(r, SectorRejected):  # the engine could not run it: this sector only, state unchanged
         return ServiceError(ErrorCode.INVALID_FIELD, f"{r.message} (seq {p.msg.seq} not run)", r.field)
     d = r.detections
     least = min_score if p.msg.min_score is None else p.msg.min_score
@@ -49,4 +49,17 @@ def sector_answer(
         ),
         cold_start=cold,
         worker_id=worker_id,
+    )
+
+
+def expired_error(
+    p: Pending, now: float, shutting_down: bool, worker_id: str, deadline_ms: float
+) -> ServiceError:
+    """A queued sector's answer when it never ran: the worker shut down, or its deadline passed."""
+    if shutting_down:
+        return ServiceError(ErrorCode.NOT_READY, f"worker {worker_id} shut down before this sector ran")
+    return ServiceError(
+        ErrorCode.DEADLINE_EXCEEDED,
+        f"deadline: seq {p.msg.seq} waited {(now - p.submitted) * 1e3:.0f} ms in the queue; "
+        f"the deadline is {deadline_ms:g} ms (deadline_ms)",
     )

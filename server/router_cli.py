@@ -4,6 +4,7 @@ storage: it only routes. Runs until SIGTERM or SIGINT."""
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import threading
@@ -17,6 +18,8 @@ from server.settings import endpoint_is_loopback
 from server.zenoh_transport import ZenohConfig, open_session
 
 log = logging.getLogger("phim.router")
+DICTIONARY_KEY = "transport/auth/usrpwd/dictionary_file"
+PLACEHOLDER_PASSWORD = "change-me"  # the samples' passwords (deploy/zenoh/), never a real one
 
 
 @click.command("router")
@@ -39,7 +42,8 @@ log = logging.getLogger("phim.router")
 )
 def router_cmd(listen: str, config_file: Path | None, insecure: bool) -> None:
     """Route zenoh between workers and vehicles until SIGTERM/SIGINT. Like `phim serve`, a listener beyond
-    loopback needs a --config-file with an ACL, mTLS or user/password (deploy/zenoh/), or --insecure."""
+    loopback needs a --config-file with an ACL, mTLS or user/password (deploy/zenoh/), or --insecure; a
+    user/password dictionary still holding a sample's placeholder password (change-me...) is refused."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     endpoints = tuple(e.strip() for e in listen.split(",") if e.strip())
     wide = [e for e in endpoints if not endpoint_is_loopback(e)]
@@ -58,6 +62,11 @@ def router_cmd(listen: str, config_file: Path | None, insecure: bool) -> None:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    if config_file is not None and (placeholders := placeholder_users(config_file)):
+        raise click.UsageError(
+            f"--config-file {config_file}: the users {', '.join(placeholders)} still have the sample's "
+            "placeholder password (change-me...) in its dictionary file: give each a secret of its own"
+        )
     try:
         session = open_session(cfg)
     except ValueError as e:  # the config file guards nothing
@@ -68,3 +77,21 @@ def router_cmd(listen: str, config_file: Path | None, insecure: bool) -> None:
     stop.wait()
     session.close()
     log.info("zenoh router stopped")
+
+
+def placeholder_users(config_file: Path) -> list[str]:
+    """The users of the config's user/password dictionary file (`user:password` lines) whose password is
+    still a sample's placeholder (deploy/zenoh/router-users.txt: `change-me...`); [] without a dictionary.
+    A dictionary zenoh cannot read fails where zenoh reads it, at the session's start."""
+    try:
+        dictionary = json.loads(zenoh.Config.from_file(str(config_file)).get_json(DICTIONARY_KEY))
+    except zenoh.ZError:
+        return []  # a config zenoh cannot read: its error comes with the session's start
+    if not dictionary:
+        return []
+    try:
+        lines = Path(dictionary).read_text().splitlines()
+    except (OSError, UnicodeDecodeError):
+        return []
+    users = [line.partition(":") for line in lines]
+    return [user for user, _, password in users if password.startswith(PLACEHOLDER_PASSWORD)]

@@ -4,10 +4,11 @@ A batch takes at most one sector per stream (the streams' oldest, oldest first) 
 The oldest sector may wait up to `max_wait` for a fuller batch; it runs at once when every live stream (up
 to `max_batch`) has a sector queued, or when the worker is closing.
 
-A fixed-shape engine pads a batch to its bucket (1, 2, 4, ... streams: `model.graph.buckets`), and a padding
-stream costs about as much as a real one. So, while `max_wait` allows, it also runs at once a batch that
-fills a bucket exactly when the streams not queued yet could not fill the next bucket up (e.g. 4 queued of
-5 live streams: 4 now, not 5 padded to 8 later); a batch that just misses a bucket (3 of 5) waits.
+A fixed-shape engine pads a batch to its bucket (1, 2, 4, ... streams: the batch buckets its description
+gives, `model.engine.EngineInfo`), and a padding stream costs about as much as a real one. So, while
+`max_wait` allows, it also runs at once a batch that fills a bucket exactly when the streams not queued yet
+could not fill the next bucket up (e.g. 4 queued of 5 live streams: 4 now, not 5 padded to 8 later); a
+batch that just misses a bucket (3 of 5) waits.
 
 Which streams' sectors a batch takes is fair between tenants (server/tenants.py): `fair_order` lists the
 queued streams round-robin by tenant (each tenant's oldest first, the tenant with the oldest sector first),

@@ -6,6 +6,7 @@ imports pydantic and the contract only, so `phim serve --help` answers without t
 
 from __future__ import annotations
 
+import enum
 import ipaddress
 import os
 import socket
@@ -28,8 +29,8 @@ from server.auth import TokenFile
 MAX_GRAPH_BATCH = 32  # the largest batch bucket of the fixed-shape step (model/graph/buckets.py)
 
 if TYPE_CHECKING:
-    from server.live_view import LiveViewConfig
-    from server.ros2_bridge import Ros2Config
+    from ros.live_view import LiveViewConfig
+    from ros.node import Ros2Config
     from server.worker import WorkerConfig
     from server.zenoh_transport import ZenohConfig
 
@@ -58,6 +59,23 @@ def endpoint_is_loopback(endpoint: str) -> bool:
     return is_loopback(host.strip("[]"))
 
 
+class SettingGroup(enum.Enum):
+    """The section of `phim serve --help` a setting is listed in (its annotation names it); the value is the
+    section's title, in the order they are listed."""
+
+    MODEL = "Model and engine"
+    TRANSPORTS = "Transports (HTTP, zenoh)"
+    LIMITS = "Limits (batching, streams, tenants, sizes)"
+    SECURITY = "Security (tokens, TLS, zenoh guard)"
+    ROS2 = "ROS 2 and live view (docs/ros2.md)"
+    LOGS = "Identity, logs and metrics"
+
+
+# the annotations' short names: `host: Annotated[str, TRANSPORTS]`
+MODEL, TRANSPORTS, LIMITS = SettingGroup.MODEL, SettingGroup.TRANSPORTS, SettingGroup.LIMITS
+SECURITY, ROS2, LOGS = SettingGroup.SECURITY, SettingGroup.ROS2, SettingGroup.LOGS
+
+
 def default_worker_id() -> str:
     return f"{socket.gethostname()}-{os.getpid()}"
 
@@ -69,215 +87,173 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="PHIM_", extra="forbid", frozen=True)
 
     # HTTP
-    host: str = Field("127.0.0.1", description="HTTP bind address.")
-    port: int = Field(DEFAULT_HTTP_PORT, ge=0, le=65535, description="HTTP port.")
-    tls_cert: Path | None = Field(
-        None, description="A PEM certificate (chain): serve HTTPS with it and --tls-key instead of HTTP."
+    host: Annotated[str, TRANSPORTS] = Field("127.0.0.1", description="HTTP bind address.")
+    port: Annotated[int, TRANSPORTS] = Field(DEFAULT_HTTP_PORT, ge=0, le=65535, description="HTTP port.")
+    tls_cert: Annotated[Path | None, SECURITY] = Field(
+        None, description="Serve HTTPS with this PEM certificate (chain) and --tls-key."
     )
-    tls_key: Path | None = Field(None, description="The PEM private key of --tls-cert.")
-    http_header_timeout_s: float = Field(
-        10.0, gt=0, description="A request's headers must arrive within this (else the connection closes)."
+    tls_key: Annotated[Path | None, SECURITY] = Field(None, description="The PEM private key of --tls-cert.")
+    http_header_timeout_s: Annotated[float, LIMITS] = Field(
+        10.0, gt=0, description="Seconds for a request's headers."
     )
-    http_body_timeout_s: float = Field(
-        30.0, gt=0, description="A request's body must arrive within this of its headers (else it closes)."
+    http_body_timeout_s: Annotated[float, LIMITS] = Field(
+        30.0, gt=0, description="Seconds for a request's body, after its headers."
     )
-    http_max_header_bytes: int = Field(
-        32768,
-        ge=1024,
-        description="A request's request line and headers together at most (bytes); beyond: 431, closed.",
+    http_max_header_bytes: Annotated[int, LIMITS] = Field(
+        32768, ge=1024, description="Request line and headers at most (bytes)."
     )
-    http_max_headers: int = Field(
-        100, ge=8, description="Header fields in one request at most; beyond: 431 and the connection closed."
+    http_max_headers: Annotated[int, LIMITS] = Field(
+        100, ge=8, description="Header fields in one request at most."
     )
     # model
-    checkpoint: Path | None = Field(
-        None, description="Weights to serve [default: the embedded default model]."
+    checkpoint: Annotated[Path | None, MODEL] = Field(
+        None, description="Weights [default: the embedded default model]."
     )
-    config: str | None = Field(
-        None, description="The checkpoint's config (checked); without a checkpoint: serve it untrained."
+    config: Annotated[str | None, MODEL] = Field(
+        None, description="The checkpoint's config; alone: serve it untrained."
     )
-    refiner: bool = Field(
-        True,
-        description="Run the model's box refiner, where it has one (docs/model.md); false: the detector's "
-        "boxes alone, 4-6 ms a sector less on a 2-core CPU.",
+    refiner: Annotated[bool, MODEL] = Field(
+        True, description="Refine each box from the points (docs/model.md)."
     )
-    min_score: float = Field(
-        DEFAULT_MIN_SCORE,
-        ge=0.0,
-        le=1.0,
-        description="Replies keep the boxes scored at least this (0: every box); a sector's own min_score "
-        "overrides it. Chosen from the default model's precision/recall curve (docs/model-card.md).",
+    min_score: Annotated[float, MODEL] = Field(
+        DEFAULT_MIN_SCORE, ge=0.0, le=1.0, description="Replies leave out boxes scored below this."
     )
-    ego_footprint: EgoBox = Field(
-        None,
-        description="The ego vehicle around the sensor, x_min,x_max,y_min,y_max in metres (sensor frame, x "
-        "forward, y left): its points are dropped before the model and no box centred in it is returned; "
-        "'off': none [default: the checkpoint config's, -2.5,2.5,-1.6,1.6: a car with the sensor on its "
-        "roof; docs/model.md].",
+    ego_footprint: Annotated[EgoBox, MODEL] = Field(
+        None, description="Ego box x_min,x_max,y_min,y_max (m), or off [default: the config's]."
     )
-    device: str = Field("auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="auto, cpu, cuda or cuda:N.")
-    threads: int = Field(0, ge=0, description="Torch CPU threads (0: torch's default).")
-    warmup_sectors: int = Field(5, ge=0, description="Warm-up forwards before the worker is ready.")
-    engine: Literal["eager", "fixed", "graph"] = Field(
-        "eager",
-        description="How a step runs: eager (the reference), fixed (the fixed-shape step) or graph (it, "
-        "compiled with torch.compile; every batch bucket up to max_batch compiles at warm-up).",
+    device: Annotated[str, MODEL] = Field(
+        "auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$", description="auto, cpu, cuda or cuda:N."
     )
-    sector_voxels: int = Field(
-        0,
-        ge=0,
-        description="fixed/graph: voxels a stream buffers per sector (a sector with more fails alone: 422); "
-        "0: the config's (tiny 8192, paper 24576).",
+    threads: Annotated[int, MODEL] = Field(0, ge=0, description="Torch CPU threads (0: torch's default).")
+    warmup_sectors: Annotated[int, MODEL] = Field(
+        5, ge=0, description="Warm-up forwards before the worker is ready."
     )
-    sector_points: int = Field(
-        49152,
-        ge=0,
-        description="fixed/graph: points every sector is padded to, so sectors of any size up to it share "
-        "one capacity bucket per batch bucket (graph: compiled at warm-up; a larger sector runs op by op, "
-        "logged); 0: the bucket of each batch's largest sector.",
+    engine: Annotated[Literal["eager", "graph"], MODEL] = Field(
+        "eager", description="How a step runs: eager or graph (docs/deployment.md)."
     )
-    bev_crop: bool = Field(
-        True,
-        description="fixed/graph: once a stream has run a turn, the BEV backbone and head run on a crop "
-        "around its new sector (tiny 71 %, paper 47 % of the map; docs/model.md); false: the whole map "
-        "every step (graph: half the buckets to compile at warm-up).",
+    sector_voxels: Annotated[int, MODEL] = Field(
+        0, ge=0, description="graph: voxels buffered per sector (0: the config's)."
     )
-    capacity_headroom: float = Field(
-        2.0,
-        ge=1.0,
-        description="fixed/graph: site capacities over those of the warm-up's synthetic turn (graph: a "
-        "sector that does not fit them runs op by op, logged; nothing compiles while serving).",
+    sector_points: Annotated[int, MODEL] = Field(
+        49152, ge=0, description="graph: points a sector is padded to (0: the batch's largest)."
     )
-    precision: Literal["fp32", "bf16"] = Field(
-        "fp32",
-        description="The forward's precision: fp32, or bf16 (autocast: matmuls and convs in bfloat16, "
-        "scan and outputs float32; meant for CUDA, slow on CPUs without AMX).",
+    bev_crop: Annotated[bool, MODEL] = Field(
+        True, description="graph: after a turn, BEV only around the new sector."
+    )
+    capacity_headroom: Annotated[float, MODEL] = Field(
+        2.0, ge=1.0, description="graph: capacities over the warm-up turn's."
+    )
+    precision: Annotated[Literal["fp32", "bf16"], MODEL] = Field(
+        "fp32", description="fp32, or bf16 autocast (meant for CUDA)."
     )
     # scheduler and stream table
-    max_batch: int = Field(8, ge=1, description="Streams per forward.")
-    max_queued_points: int = Field(
-        4_000_000,
-        ge=1,
-        description="Points waiting for the device loop, all streams together (bounds the queue's memory; "
-        "beyond: 503 overloaded, unless the queue is empty).",
+    max_batch: Annotated[int, LIMITS] = Field(8, ge=1, description="Streams per forward.")
+    max_queued_points: Annotated[int, LIMITS] = Field(
+        4_000_000, ge=1, description="Queued points, all streams together (beyond: 503)."
     )
-    max_wait_ms: float = Field(
+    max_wait_ms: Annotated[float, LIMITS] = Field(
         0.0, ge=0, description="How long the oldest sector may wait for a fuller batch."
     )
-    queue_size: int = Field(64, ge=1, description="Queued sectors (all streams) before 503 overloaded.")
-    deadline_ms: float = Field(2000.0, gt=0, description="A sector not started by then gets 504.")
-    idle_timeout_s: float = Field(10.0, gt=0, description="Streams idle this long are evicted.")
-    max_streams: int = Field(
-        256, ge=1, description="Live streams at most (fixed/graph: the device state slots it allocates)."
+    queue_size: Annotated[int, LIMITS] = Field(
+        64, ge=1, description="Queued sectors, all streams together (beyond: 503)."
     )
-    drain_timeout_s: float = Field(
-        10.0, ge=0, description="On shutdown, keep answering queued sectors this long."
+    deadline_ms: Annotated[float, LIMITS] = Field(
+        2000.0, gt=0, description="A sector not started by then gets 504."
+    )
+    idle_timeout_s: Annotated[float, LIMITS] = Field(
+        10.0, gt=0, description="Streams idle this long are evicted."
+    )
+    max_streams: Annotated[int, LIMITS] = Field(
+        256, ge=1, description="Live streams at most (graph: the state slots)."
+    )
+    drain_timeout_s: Annotated[float, LIMITS] = Field(
+        10.0, ge=0, description="On shutdown, answer queued sectors this long."
     )
     # tenants (docs/security.md): a stream's tenant is its token's prefix, else its ID up to the first '.'
-    tenant_max_streams: int | None = Field(
-        None,
-        ge=1,
-        description="Live streams one tenant may hold (beyond: 503) [default: half of max_streams].",
+    tenant_max_streams: Annotated[int | None, LIMITS] = Field(
+        None, ge=1, description="Live streams a tenant may hold [default: max_streams/2]."
     )
-    tenant_queue_size: int | None = Field(
-        None,
-        ge=1,
-        description="Queued sectors each tenant is guaranteed (and the same fraction of max_queued_points): "
-        "a tenant alone may fill the queue, but a full queue makes room for a tenant within this by "
-        "refusing the newest sectors of one beyond it [default: half of queue_size].",
+    tenant_queue_size: Annotated[int | None, LIMITS] = Field(
+        None, ge=1, description="Queued sectors a tenant is guaranteed [default: queue_size/2]."
     )
     # limits on a sector message
-    max_body_bytes: int = Field(64 * 2**20, ge=1024, description="Largest sector message (bytes).")
-    max_points: int = Field(1_000_000, ge=1, description="Points per sector at most.")
-    max_string_len: int = Field(256, ge=1, description="Longest stream ID or field name.")
-    max_fields: int = Field(16, ge=4, description="Point columns at most.")
-    # zenoh
-    zenoh_enabled: bool = Field(True, description="Serve over zenoh as well as HTTP.")
-    zenoh_mode: Literal["peer", "client", "router"] = Field("peer", description="Zenoh session mode.")
-    zenoh_listen: Endpoints = Field(
-        (DEFAULT_ZENOH_ENDPOINT,),
-        description="Zenoh endpoints to listen on (a client: none unless given); beyond loopback they need "
-        "--zenoh-config-file with an ACL, mTLS or user/password (deploy/zenoh/), or --insecure.",
+    max_body_bytes: Annotated[int, LIMITS] = Field(
+        64 * 2**20, ge=1024, description="Largest sector message (bytes)."
     )
-    zenoh_connect: Endpoints = Field((), description="Zenoh endpoints to connect to (a router, other peers).")
-    zenoh_config_file: Path | None = Field(None, description="A zenoh JSON5 config file (TLS, ACL, ...).")
-    zenoh_multicast_scouting: bool = Field(False, description="Zenoh multicast scouting.")
-    zenoh_shared_keys: bool = Field(
-        True,
-        description="Also answer the shared keys phim/v1/streams/{id}/... (one worker alone). Turn off when "
-        "several workers share a router: each answers only its own keys, and clients pick a stream's worker "
-        "(--workers auto).",
+    max_points: Annotated[int, LIMITS] = Field(1_000_000, ge=1, description="Points per sector at most.")
+    max_string_len: Annotated[int, LIMITS] = Field(256, ge=1, description="Longest stream ID or field name.")
+    max_fields: Annotated[int, LIMITS] = Field(16, ge=4, description="Point columns at most.")
+    # zenoh
+    zenoh_enabled: Annotated[bool, TRANSPORTS] = Field(True, description="Serve over zenoh as well as HTTP.")
+    zenoh_mode: Annotated[Literal["peer", "client", "router"], TRANSPORTS] = Field(
+        "peer", description="Zenoh session mode."
+    )
+    zenoh_listen: Annotated[Endpoints, TRANSPORTS] = Field(
+        (DEFAULT_ZENOH_ENDPOINT,), description="Zenoh endpoints to listen on (a client: none)."
+    )
+    zenoh_connect: Annotated[Endpoints, TRANSPORTS] = Field(
+        (), description="Zenoh endpoints to connect to (a router, peers)."
+    )
+    zenoh_config_file: Annotated[Path | None, SECURITY] = Field(
+        None, description="A zenoh JSON5 config (ACL, mTLS or user/password)."
+    )
+    zenoh_multicast_scouting: Annotated[bool, TRANSPORTS] = Field(
+        False, description="Zenoh multicast scouting."
+    )
+    zenoh_shared_keys: Annotated[bool, TRANSPORTS] = Field(
+        True, description="Also answer phim/v1/streams/... (one worker alone)."
     )
     # ROS 2 bridge (docs/ros2.md): rmw_zenoh topics through the zenoh session above
-    ros2_points: str | None = Field(
-        None,
-        description="Take scans from this sensor_msgs/msg/PointCloud2 topic of a ROS 2 graph on rmw_zenoh "
-        "(e.g. /car1/lidar/points), each message a whole turn; unset: no ROS 2 bridge.",
+    ros2_points: Annotated[str | None, ROS2] = Field(
+        None, description="PointCloud2 topic to take scans from (unset: no bridge)."
     )
-    ros2_detections: str | None = Field(
-        None,
-        description="Publish each sector's boxes on this vision_msgs/msg/Detection3DArray topic [default: "
-        "detections in the points topic's first namespace: /car1/detections].",
+    ros2_detections: Annotated[str | None, ROS2] = Field(
+        None, description="Detection3DArray topic [default: /NS/detections, NS the points topic's namespace]."
     )
-    ros2_markers: str | None = Field(
-        None, description="Also publish them as visualization_msgs/msg/MarkerArray here (RViz); unset: not."
+    ros2_markers: Annotated[str | None, ROS2] = Field(
+        None, description="MarkerArray topic for RViz (unset: none)."
     )
-    ros2_domain_id: int = Field(0, ge=0, description="The ROS graph's ROS_DOMAIN_ID.")
-    ros2_stream_id: str | None = Field(
+    ros2_domain_id: Annotated[int, ROS2] = Field(0, ge=0, description="The ROS graph's ROS_DOMAIN_ID.")
+    ros2_stream_id: Annotated[str | None, ROS2] = Field(
         None,
         pattern=STREAM_ID_PATTERN,
         max_length=128,
-        description="The stream the scans go to [default: the points topic's first namespace: car1].",
+        description="The scans' stream [default: the points topic's namespace].",
     )
-    ros2_intensity_scale: float = Field(
-        1.0,
-        gt=0,
-        description="Multiplies every point's intensity: the model reads 0..1, so 0.00392156862745098 "
-        "(1/255) for drivers publishing 0..255 (velodyne_pointcloud, Ouster, Hesai, Livox), 1 for 0..1.",
+    ros2_intensity_scale: Annotated[float, ROS2] = Field(
+        1.0, gt=0, description="Intensity factor to 0..1 (1/255: drivers of 0..255)."
     )
-    ros2_partial_scans: bool = Field(
-        False,
-        description="Each PointCloud2 is a piece of a turn (cut into sectors as the points come), not a "
-        "whole turn.",
+    ros2_partial_scans: Annotated[bool, ROS2] = Field(
+        False, description="Each PointCloud2 is a piece of a turn."
     )
     # live view (docs/ros2.md)
-    foxglove_port: int | None = Field(
-        None,
-        ge=0,
-        le=65535,
-        description="Serve a live view on this port: a Foxglove WebSocket server with each stream's latest "
-        "sector's points and boxes (0: a free port; unset: no live view).",
+    foxglove_port: Annotated[int | None, ROS2] = Field(
+        None, ge=0, le=65535, description="Foxglove live view port (0: a free one; unset: none)."
     )
-    foxglove_host: str = Field(
-        "127.0.0.1",
-        description="The live view's bind address; it has no authentication, so beyond loopback it needs "
-        "--insecure.",
-    )
+    foxglove_host: Annotated[str, ROS2] = Field("127.0.0.1", description="The live view's bind address.")
     # identity and logs
-    worker_id: str = Field(
+    worker_id: Annotated[str, LOGS] = Field(
         default_factory=default_worker_id,
         pattern=STREAM_ID_PATTERN,
         max_length=128,
-        description="This worker's ID, unique in a fleet (letters, digits, . _ -) [default: host-pid].",
+        description="This worker's ID, unique in a fleet [default: host-pid].",
     )
-    log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="Log level.")
-    log_format: Literal["text", "json"] = Field(
-        "text",
-        description="Logs on stderr: text lines, or JSON lines (time, level, logger, message, exception).",
+    log_level: Annotated[Literal["debug", "info", "warning", "error"], LOGS] = Field(
+        "info", description="Log level."
     )
-    access_log: bool = Field(False, description="uvicorn's access log: a line per HTTP request.")
+    log_format: Annotated[Literal["text", "json"], LOGS] = Field(
+        "text", description="Logs on stderr: text lines, or JSON lines."
+    )
+    access_log: Annotated[bool, LOGS] = Field(False, description="uvicorn's access log: a line per request.")
     # access (docs/security.md)
-    auth_tokens: Path | None = Field(
-        None,
-        description="A token file (phim auth add-token): every HTTP route but /health needs a bearer token, "
-        "a stream's routes one whose prefix its ID starts with (or an admin one); re-read when it changes.",
+    auth_tokens: Annotated[Path | None, SECURITY] = Field(
+        None, description="Token file (phim auth add-token) HTTP routes need."
     )
-    public_metrics: bool = Field(False, description="With --auth-tokens: /metrics answers without a token.")
-    insecure: bool = Field(
-        False,
-        description="Allow an HTTP host beyond loopback without --auth-tokens (anyone reaching it "
-        "may drive, read and end every stream), and a live view (--foxglove-host) beyond loopback (anyone "
-        "reaching it sees every stream's points and boxes).",
+    public_metrics: Annotated[bool, LOGS] = Field(
+        False, description="With --auth-tokens: /metrics needs no token."
+    )
+    insecure: Annotated[bool, SECURITY] = Field(
+        False, description="Allow HTTP, zenoh, live view open beyond loopback."
     )
 
     @model_validator(mode="after")
@@ -438,7 +414,7 @@ class Settings(BaseSettings):
         )
 
     def live_view_config(self) -> LiveViewConfig:
-        from server.live_view import LiveViewConfig
+        from ros.live_view import LiveViewConfig
 
         assert self.foxglove_port is not None, "no live view without --foxglove-port"
         # its channels outlive a stream's eviction a little: a viewer sees the last boxes, then they go
@@ -451,7 +427,7 @@ class Settings(BaseSettings):
 
     def ros2_config(self) -> Ros2Config:
         """The bridge's settings, defaults filled in."""
-        from server.ros2_bridge import Ros2Config
+        from ros.node import Ros2Config
 
         assert self.ros2_points is not None, "no ROS 2 bridge without --ros2-points"
         return Ros2Config(

@@ -5,10 +5,10 @@ Not thread-safe by itself: the Worker holds its lock around every call. A stream
 Sequence numbers: a sector must come after every sector of its stream already admitted (queued or done),
 unless it carries the reset flag; a gap (seq > last + 1) is accepted and reported when the sector runs.
 
-States: `new_state` gives a new stream its state (a fixed-shape engine's device slot; None: the device loop
-makes it) and `drop_state` gives it back when the stream leaves the table (ended or evicted). A stream ended
-while its sector runs gives its state back when that sector has finished (`finished`), so the step in
-progress never reads a slot another stream has taken meanwhile.
+States: `new_state` gives a new stream its engine state (`model.engine.EngineState`: opaque here; a
+fixed-shape engine's is a device slot) and `drop_state` gives it back when the stream leaves the table
+(ended or evicted). A stream ended while its sector runs gives its state back when that sector has finished
+(`finished`), so the step in progress never reads a slot another stream has taken meanwhile.
 
 Tenants (`server.tenants`): each stream belongs to the tenant `tenant_of` gives its ID when it starts; a
 tenant holds at most `tenant_max_streams` live streams (beyond: OVERLOADED, naming the tenant).
@@ -26,8 +26,7 @@ from typing import Any
 import torch
 
 from contract import DetectionsReply, ErrorCode, SectorMessage, ServiceError
-from model.graph.slots import SlotsExhausted, SlotState
-from model.stream import StreamState
+from model.engine import EngineState, StatesExhausted
 from server.tenants import tenant_of_id
 
 
@@ -49,7 +48,7 @@ class StreamEntry:
     stream_id: str
     created_unix: float
     last_seen: float  # time.monotonic() of the last sector admitted or answered
-    state: StreamState | SlotState | None = None  # None: fresh (the device loop builds the initial state)
+    state: EngineState  # the engine's state of this stream
     last_seq: int | None = None  # seq of the last sector that ran
     last_timestamp_ns: int | None = None  # its sensor time
     last_admitted: int | None = None  # seq of the newest sector queued or run (stale checks)
@@ -75,18 +74,10 @@ class StreamEntry:
             "last_timestamp_ns": self.last_timestamp_ns,
             "gaps": self.gaps,
             "pending": len(self.pending) + int(self.running),
-            "buffered_sectors": self.state.buffered_sectors if self.state is not None else 0,
+            "buffered_sectors": self.state.buffered_sectors,
             "created_unix": self.created_unix,
             "idle_s": round(now - self.last_seen, 3),
         }
-
-
-def _no_state() -> None:
-    return None
-
-
-def _nothing_to_drop(state: StreamState | SlotState | None) -> None:
-    return None
 
 
 class StreamTable:
@@ -94,9 +85,9 @@ class StreamTable:
         self,
         max_streams: int,
         idle_timeout_s: float,
-        on_evict: Callable[[str], None] | None = None,
-        new_state: Callable[[], SlotState | None] = _no_state,
-        drop_state: Callable[[StreamState | SlotState | None], None] = _nothing_to_drop,
+        on_evict: Callable[[str], None] | None,
+        new_state: Callable[[], EngineState],
+        drop_state: Callable[[EngineState], None],
         tenant_of: Callable[[str], str] = tenant_of_id,
         tenant_max_streams: int | None = None,  # None: max_streams (no cap per tenant)
     ):
@@ -149,7 +140,7 @@ class StreamTable:
             raise self._tenant_full(stream_id, tenant)
         try:
             state = self.new_state()
-        except SlotsExhausted:  # sized by max_streams; a stream ended mid-step gives its slot back after it
+        except StatesExhausted:  # sized by max_streams; a stream ended mid-step gives its slot back after it
             raise ServiceError(
                 ErrorCode.OVERLOADED,
                 f"stream_id: cannot start stream {stream_id!r}: all stream-state slots (max_streams="

@@ -15,7 +15,7 @@ from server.settings import Settings
 from server.worker import Worker
 
 if TYPE_CHECKING:
-    from server.live_view import LiveView
+    from ros.live_view import LiveView
     from server.ros2_bridge import Ros2Bridge
     from server.zenoh_transport import ZenohTransport
 
@@ -50,7 +50,7 @@ def start_live_view(settings: Settings, metrics: Metrics) -> LiveView | None:
     """The live view when --foxglove-port is given (its port bound: a taken port fails the start-up)."""
     if settings.foxglove_port is None:
         return None
-    from server.live_view import LiveView  # foxglove-sdk is imported only when a live view runs
+    from ros.live_view import LiveView  # foxglove-sdk is imported only when a live view runs
 
     view = LiveView(settings.live_view_config(), metrics.live_view_dropped.inc)
     view.start()

@@ -3,10 +3,11 @@
 One device-loop thread owns the model. Transports call `submit` from any thread; it validates the sector,
 admits it to its stream's queue (or fails the returned future at once) and never blocks. The loop forms a
 batch of at most one sector per stream (the oldest waiting first), bounded by `max_batch` and `max_wait_ms`
-(and, for a fixed-shape engine, preferring full batch buckets: `server.scheduler`), runs the detector's
-`step` once, writes the new states back and answers every sector with its own reply or its own error. A
-stream's next sector waits until its previous one has run, so each stream stays in order. numpy <-> torch
-conversion happens here (`server.admission`): transports never see a tensor.
+(and, where the engine pads batches to buckets, preferring full ones: `server.scheduler`), runs the engine's
+`step` once (`server.batch`), writes the new states back and answers every sector with its own reply or its
+own error. A stream's next sector waits until its previous one has run, so each stream stays in order. The
+model is reached only through the engine interface (`model.engine`). numpy <-> torch conversion happens
+here (`server.admission`): transports never see a tensor.
 """
 
 from __future__ import annotations
@@ -16,28 +17,24 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, InvalidStateError
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 
 from contract import DetectionsReply, ErrorCode, SectorMessage, ServiceError
-from model.graph.engine import Detector, SectorRejected
+from model.engine import EngineState, StreamEngine
 from server.admission import Backlog, sector_points
-from server.device_states import DetectorStates
-from server.metrics import OK, Metrics
-from server.outcomes import sector_answer
+from server.batch import Answer, Observer, engine_buckets, gap_of, observe, run_batch, settle
+from server.metrics import Metrics
+from server.outcomes import expired_error
 from server.scheduler import Wait, batch_fill, decide, fair_order
 from server.streams import Pending, StreamEntry, StreamTable, queued_of
 from server.tenants import TenantQueue, half, plan_push_out, pushed_out_error, tenant_of_id
-from server.warmup import freeze_heap, model_info, warm_up
+from server.warmup import model_info, warm_up
 
 log = logging.getLogger(__name__)
-
-Answer = tuple[Future[DetectionsReply], str, DetectionsReply | ServiceError]  # future, transport, outcome
-# sees each answered sector with its reply, in the device thread after the answer: must be cheap, never block
-Observer = Callable[[SectorMessage, DetectionsReply], None]
 
 
 @dataclass(frozen=True)
@@ -51,7 +48,7 @@ class WorkerConfig:
     idle_timeout_s: float = 10.0
     max_streams: int = 256
     warmup_sectors: int = 5
-    capacity_headroom: float = 2.0  # fixed/graph: capacities over the warm-up turn's
+    capacity_headroom: float = 2.0  # graph: capacities over the warm-up turn's
     min_score: float = 0.0  # replies keep the boxes scored at least this, unless a sector says otherwise
     tenant_max_streams: int | None = None  # live streams per tenant (server/tenants.py); None: half
     tenant_queue_size: int | None = None  # queued sectors a tenant is guaranteed; None: half of queue_size
@@ -66,14 +63,14 @@ class WorkerConfig:
 class Worker:
     """One model, one device thread, many streams.
 
-    `load` builds the detector and says where its weights come from. It runs in the device thread, the only
-    thread that runs the model: with OpenMP, a second thread that has run parallel CPU ops (even just
-    building the model) makes every forward about 3x slower on a 2-core machine (libgomp throttles its
-    spin-waits once it manages more threads than there are CPUs)."""
+    `load` builds the engine (`model.engine`) and says where its weights come from. It runs in the device
+    thread, the only thread that runs the model: with OpenMP, a second thread that has run parallel CPU ops
+    (even just building the model) makes every forward about 3x slower on a 2-core machine (libgomp
+    throttles its spin-waits once it manages more threads than there are CPUs)."""
 
     def __init__(
         self,
-        load: Callable[[], tuple[Detector, str]],
+        load: Callable[[], tuple[StreamEngine, str]],
         cfg: WorkerConfig = WorkerConfig(),
         metrics: Metrics | None = None,
         observer: Observer | None = None,
@@ -81,20 +78,19 @@ class Worker:
     ):
         self._load = load
         self._observer = observer  # the live view (server/live_view.py); None: nothing watches
-        self._det: Detector | None = None
+        self._det: StreamEngine | None = None
         self._source = ""  # where the weights came from (for /v1/model)
+        self._buckets: tuple[int, ...] | None = None  # the engine's batch buckets (None: batches unpadded)
         self.cfg = cfg
         self.worker_id = cfg.worker_id
         self.metrics = metrics or Metrics()
-        self._states = DetectorStates(cfg.max_streams)
-        st = self._states
         tenant_streams, tenant_sectors, tenant_points = cfg.tenant_shares()
         self.table = StreamTable(
             cfg.max_streams,
             cfg.idle_timeout_s,
             self._evicted,
-            st.new_state,
-            st.drop_state,
+            lambda: self.det.new_state(),  # streams start once the engine is loaded (ready)
+            lambda state: self.det.release(state),
             tenant_of,
             tenant_streams,
         )
@@ -157,12 +153,14 @@ class Worker:
             with self._cond:
                 pushed_out = self._admit(msg, points, fut, transport, now)
                 self._cond.notify_all()
-            self._settle(pushed_out)
+            settle(self.metrics, pushed_out)
         except ServiceError as e:
-            self._settle([(fut, transport, e)])
+            settle(self.metrics, [(fut, transport, e)])
         except Exception as e:  # a bug must still give this sector its one answer
             log.exception("submit of %s seq %s failed", msg.stream_id, msg.seq)
-            self._settle([(fut, transport, ServiceError(ErrorCode.INTERNAL, f"{type(e).__name__}: {e}"))])
+            settle(
+                self.metrics, [(fut, transport, ServiceError(ErrorCode.INTERNAL, f"{type(e).__name__}: {e}"))]
+            )
         return fut
 
     def end_stream(self, stream_id: str) -> None:
@@ -170,7 +168,7 @@ class Worker:
         with self._cond:
             entry = self.table.end(stream_id)
             failed = self._drop_pending(entry, ErrorCode.UNKNOWN_STREAM, f"stream {stream_id!r} was ended")
-        self._settle(failed)
+        settle(self.metrics, failed)
 
     def streams(self) -> list[dict[str, Any]]:
         now = time.monotonic()
@@ -185,8 +183,8 @@ class Worker:
             return entry.summary(time.monotonic())
 
     @property
-    def det(self) -> Detector:
-        """The detector, once the device thread has loaded it (NOT_READY before)."""
+    def det(self) -> StreamEngine:
+        """The engine, once the device thread has loaded it (NOT_READY before)."""
         if self._det is None:
             raise ServiceError(ErrorCode.NOT_READY, f"worker {self.worker_id}: {self.status}; no model yet")
         return self._det
@@ -206,7 +204,7 @@ class Worker:
                 self._cond.notify_all()
             self._cond.wait_for(lambda: self._backlog.sectors == 0, drain_timeout_s)
             failed = self._expire(math.inf)  # what the loop did not get to (stuck, slow or never started)
-        self._settle(failed)
+        settle(self.metrics, failed)
         if self._thread is not None:
             self._thread.join(forward_grace_s)
             if self._thread.is_alive():
@@ -286,12 +284,11 @@ class Worker:
     def _run(self) -> None:
         try:
             self._det, self._source = self._load()
-            self._states.bind(self._det)
+            self._buckets = engine_buckets(self._det, self.cfg.max_streams)
             self.metrics.model_loaded(self.model_info())
             self._batch_s = warm_up(
                 self._det, self.cfg.warmup_sectors, self.cfg.max_batch, self.cfg.capacity_headroom
             )
-            log.info("%d objects frozen out of the collector's reach", freeze_heap())
         except Exception as e:
             log.exception("loading or warming up the model failed; the worker will never be ready")
             with self._cond:
@@ -322,7 +319,7 @@ class Worker:
                         return due
                     self._cond.wait(due)
                     continue
-            self._settle(failed)
+            settle(self.metrics, failed)
 
     def _form_batch(self, now: float) -> list[Pending] | float | None:
         """A batch, or seconds to wait for one, or None (closing and drained)."""
@@ -338,7 +335,7 @@ class Worker:
             waited,
             cfg.max_wait_ms / 1e3,
             cfg.max_batch,
-            self._states.buckets,
+            self._buckets,
             self._closing,
         )
         if isinstance(due, Wait):
@@ -359,77 +356,34 @@ class Worker:
             while entry.pending and (draining_over or entry.pending[0].deadline < now):
                 p = entry.pending.popleft()
                 self._unqueue([p])
-                failed.append((p.future, p.transport, self._expired_error(p, now, draining_over)))
+                error = expired_error(p, now, draining_over, self.worker_id, self.cfg.deadline_ms)
+                failed.append((p.future, p.transport, error))
             if len(failed) > before:
                 entry.forget_failed()
         if failed:
             self._cond.notify_all()
         return failed
 
-    def _expired_error(self, p: Pending, now: float, shutting_down: bool) -> ServiceError:
-        if shutting_down:
-            return ServiceError(
-                ErrorCode.NOT_READY, f"worker {self.worker_id} shut down before this sector ran"
-            )
-        return ServiceError(
-            ErrorCode.DEADLINE_EXCEEDED,
-            f"deadline: seq {p.msg.seq} waited {(now - p.submitted) * 1e3:.0f} ms in the queue; "
-            f"the deadline is {self.cfg.deadline_ms:g} ms (deadline_ms)",
-        )
-
     def _run_batch(self, batch: list[Pending]) -> None:
         with self._cond:
-            gaps = [self._gap(p) for p in batch]
+            gaps = [gap_of(p) for p in batch]
             colds = [p.msg.reset or p.entry.last_seq is None for p in batch]  # on a fresh state
-            prior = [self._states.prior(p.entry.state, p.msg.reset) for p in batch]
-        t0 = time.monotonic()
-        new_states: list[Any] = [None] * len(batch)  # None: the stream's state stays as it was
-        try:  # anything failing here fails this batch only: the loop and every stream's state go on
-            states = [s if s is not None else self.det.init_state() for s in prior]
-            names, least = self.det.cfg.head.class_names, self.cfg.min_score
-            results, stepped = self.det.step([p.points for p in batch], states)
-            model_s = time.monotonic() - t0
-            outcomes: list[Answer] = [
-                (p.future, p.transport, sector_answer(p, r, g, c, t0, model_s, names, self.worker_id, least))
-                for p, r, g, c in zip(batch, results, gaps, colds, strict=True)
-            ]
-            new_states = [
-                None if isinstance(r, SectorRejected) else s for r, s in zip(results, stepped, strict=True)
-            ]
-        except Exception as e:
-            log.exception("forward of a batch of %d failed", len(batch))
-            model_s = time.monotonic() - t0
+            # a reset: a fresh state (in the same slot, where the engine has slots; nothing written yet)
+            states = [self.det.reset(p.entry.state) if p.msg.reset else p.entry.state for p in batch]
+        ran = run_batch(self.det, batch, states, gaps, colds, self.cfg.min_score, self.worker_id)
+        if ran.failed:
             self.metrics.batch_failures.inc()
-            why = f"model failed on this batch of {len(batch)}: {type(e).__name__}: {e}"
-            outcomes = [(p.future, p.transport, ServiceError(ErrorCode.INTERNAL, why)) for p in batch]
-        self._batch_s = 0.8 * self._batch_s + 0.2 * model_s
+        self._batch_s = 0.8 * self._batch_s + 0.2 * ran.model_s
         self.metrics.batch_sectors.observe(len(batch))
-        self.metrics.batch_fill.observe(batch_fill(len(batch), self._states.buckets))
+        self.metrics.batch_fill.observe(batch_fill(len(batch), self._buckets))
         with self._cond:
-            for p, new_state, gap in zip(batch, new_states, gaps, strict=True):
+            for p, new_state, gap in zip(batch, ran.new_states, gaps, strict=True):
                 self._finish(p, new_state, gap)
-        self._settle(outcomes)
+        settle(self.metrics, ran.answers)
         if self._observer is not None:
-            self._observe(self._observer, batch, outcomes)
+            observe(self._observer, batch, ran.answers)
 
-    @staticmethod
-    def _observe(observer: Observer, batch: list[Pending], outcomes: list[Answer]) -> None:
-        """After the answers (a watcher never delays a reply): each answered sector to the observer; what it
-        raises is logged, never the batch's failure."""
-        for p, (_, _, out) in zip(batch, outcomes, strict=True):
-            if isinstance(out, DetectionsReply):
-                try:
-                    observer(p.msg, out)
-                except Exception:
-                    log.exception("observer failed on %s seq %d; serving goes on", p.msg.stream_id, p.msg.seq)
-
-    @staticmethod
-    def _gap(p: Pending) -> int:
-        """Sectors missed since the stream's last sector that ran (0 for a new or reset stream)."""
-        last = p.entry.last_seq
-        return 0 if p.msg.reset or last is None else max(0, p.msg.seq - last - 1)
-
-    def _finish(self, p: Pending, new_state: Any, gap: int) -> None:
+    def _finish(self, p: Pending, new_state: EngineState | None, gap: int) -> None:
         """Under the lock: write the new state back (unless the sector failed or the stream ended: an ended
         stream's state goes back to the detector now)."""
         e = p.entry
@@ -442,21 +396,3 @@ class Worker:
             e.state, e.last_seq, e.last_timestamp_ns = new_state, p.msg.seq, p.msg.timestamp_ns
             e.sectors += 1
             e.gaps += gap
-
-    def _settle(self, answers: list[Answer]) -> None:
-        """Outside the lock: count each sector (before its answer: a client that has it sees it counted) and
-        give it its one answer."""
-        for fut, transport, out in answers:
-            self.metrics.count(transport, OK if isinstance(out, DetectionsReply) else out.code.value)
-            if isinstance(out, DetectionsReply):
-                t = out.timings
-                self.metrics.queue_latency.observe(t.queue_ms / 1e3)
-                self.metrics.model_latency.observe(t.model_ms / 1e3)
-                self.metrics.sector_latency.observe(t.total_ms / 1e3)
-            try:
-                if isinstance(out, ServiceError):
-                    fut.set_exception(out)
-                else:
-                    fut.set_result(out)
-            except InvalidStateError:  # the caller cancelled (client went away); the sector still counted
-                pass

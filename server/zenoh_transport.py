@@ -2,7 +2,8 @@
 
 It knows the wire protocol and a `submit` callable (the worker's), nothing else: it never sees a tensor.
 
-Threads, so that no zenoh callback ever blocks and no zenoh call is made inside one:
+Threads (the skeleton: server/transport_thread.py), so that no zenoh callback ever blocks and no zenoh call
+is made inside one:
   - zenoh pushes queries and samples into bounded FIFO channels (no Python callback at all);
   - two receiver threads (one per channel) `recv`, decode and `submit`; `submit` never blocks;
   - the future's done-callback (it runs on the worker's device thread) only puts the outcome in the outbox;
@@ -18,13 +19,10 @@ from __future__ import annotations
 
 import json
 import logging
-import queue
-import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import partial
-from typing import TypeVar
 
 import zenoh
 
@@ -39,22 +37,19 @@ from contract import (
     ErrorReply,
     KeySpace,
     Limits,
-    SectorMessage,
     ServiceError,
     decode_sector,
     encode_error,
     encode_reply,
 )
+from server.transport_thread import Submit, TransportThreads, submit_or_fail
 
 log = logging.getLogger(__name__)
 
 MSGPACK_ENCODING = zenoh.Encoding(MSGPACK)
 CHANNEL_CAPACITY = 256  # queries / samples zenoh may hold for a receiver thread before it pushes back
-JOIN_TIMEOUT_S = 10.0
 
-Submit = Callable[[SectorMessage], "Future[DetectionsReply]"]
 Outcome = DetectionsReply | ErrorReply
-T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -163,23 +158,20 @@ class ZenohTransport:
         self._queryables: list[zenoh.Queryable] = []
         self._subscribers: list[zenoh.Subscriber] = []
         self._token: zenoh.LivelinessToken | None = None
-        self._outbox: queue.SimpleQueue[tuple[_Job, Outcome] | None] = queue.SimpleQueue()
-        self._cond = threading.Condition()
-        self._inflight: set[_Job] = set()  # submitted, outcome not yet in the outbox
-        self._receivers: list[threading.Thread] = []
-        self._replier: threading.Thread | None = None
-        self._closing = False
+        self._threads: TransportThreads[_Job, Outcome] = TransportThreads(
+            "zenoh", worker_id, self._deliver, lambda job: f"stream {job.key_id} seq {job.seq}"
+        )
 
     # ------------------------------------------------------------------------------------ public surface
 
     def start(self, announce: bool = True) -> None:
         """Open the session, declare queryables and subscribers, then (`announce`) the liveliness token."""
-        if self._session is not None or self._closing:
+        if self._session is not None or self._threads.closing:
             raise RuntimeError("a ZenohTransport starts once")
         session = open_session(self.cfg)
         self._session = session
         try:
-            self._replier = self._thread(self._reply_loop, "replier")
+            self._threads.start_sender("replier")
             for (queryable_key, subscriber_key), skip in zip(self.intake_keys, self._skips(), strict=True):
                 queryable = session.declare_queryable(
                     queryable_key, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
@@ -189,12 +181,8 @@ class ZenohTransport:
                 )
                 self._queryables.append(queryable)
                 self._subscribers.append(subscriber)
-                self._receivers.append(
-                    self._thread(self._receive_queries, "queries", queryable.handler, skip[0])
-                )
-                self._receivers.append(
-                    self._thread(self._receive_samples, "samples", subscriber.handler, skip[1])
-                )
+                self._threads.receive(queryable.handler, partial(self._query, skip=skip[0]), "queries")
+                self._threads.receive(subscriber.handler, partial(self._sample, skip=skip[1]), "samples")
             if announce:
                 self.announce()
         except BaseException:
@@ -221,8 +209,8 @@ class ZenohTransport:
         """Declare the liveliness token: clients send this worker sectors from now on (a worker announces
         itself once warmed up, so that no client routes a stream to it while it could only answer NOT_READY).
         Idempotent; nothing once closing."""
-        with self._cond:
-            if self._session is None or self._closing or self._token is not None:
+        with self._threads.cond:
+            if self._session is None or self._threads.closing or self._token is not None:
                 return
             self._token = self._session.liveliness().declare_token(self.token_key)
         log.info("zenoh: worker %s announced (%s)", self.worker_id, self.token_key)
@@ -242,37 +230,25 @@ class ZenohTransport:
     def close(self, drain_timeout_s: float = 10.0) -> None:
         """Withdraw the token, stop taking sectors, send every answer still due (sectors not settled within
         `drain_timeout_s` get NOT_READY), then close the session. Idempotent."""
-        with self._cond:
-            session = self._session
-            if session is None or self._closing:
-                return
-            self._closing = True
+        session = self._session
+        if session is None or not self._threads.begin_close():
+            return
         for entity in (self._token, *self._queryables, *self._subscribers):
             if entity is not None:
                 entity.undeclare()  # closes the channels: the receivers drain them and stop
-        for t in self._receivers:
-            t.join(JOIN_TIMEOUT_S)
-        with self._cond:
-            self._cond.wait_for(lambda: not self._inflight, drain_timeout_s)
-            late, self._inflight = list(self._inflight), set()
+        self._threads.join_receivers()
+        late = self._threads.drain(drain_timeout_s)
         if late:
             log.warning("zenoh closing: %d sectors unanswered after %.1f s", len(late), drain_timeout_s)
         for job in late:
             why = ServiceError(ErrorCode.NOT_READY, f"worker {self.worker_id}: zenoh transport closed")
-            self._outbox.put((job, job.error(why)))
-        self._outbox.put(None)
-        if self._replier is not None:
-            self._replier.join(JOIN_TIMEOUT_S)
+            self._threads.send(job, job.error(why))
+        self._threads.stop_sender()
         session.close()
         self._session = None
         log.info("zenoh transport for worker %s closed", self.worker_id)
 
     # ------------------------------------------------------------------------------------------- intake
-
-    def _thread(self, target: Callable[..., None], name: str, *args: object) -> threading.Thread:
-        t = threading.Thread(target=target, args=args, name=f"zenoh-{name}-{self.worker_id}", daemon=True)
-        t.start()
-        return t
 
     def _skips(self) -> list[tuple[zenoh.KeyExpr | None, zenoh.KeyExpr | None]]:
         """Per intake pair, the keys whose sectors it leaves to another pair: a wildcard get or put (e.g.
@@ -283,30 +259,24 @@ class ZenohTransport:
         shared = (zenoh.KeyExpr(self.keys.sector_queryable), zenoh.KeyExpr(self.keys.sector_subscriber))
         return [shared, (None, None)]
 
-    def _receive_queries(
-        self, channel: zenoh.handlers.Handler[zenoh.Query], skip: zenoh.KeyExpr | None
-    ) -> None:
-        while (query := _recv(channel)) is not None:
-            if skip is not None and query.key_expr.intersects(skip):
-                query.drop()  # finalized unanswered: the shared queryable answers it
-                continue
-            self._accept(str(query.key_expr), query.payload, query)
+    def _query(self, query: zenoh.Query, skip: zenoh.KeyExpr | None) -> None:
+        if skip is not None and query.key_expr.intersects(skip):
+            query.drop()  # finalized unanswered: the shared queryable answers it
+            return
+        self._accept(str(query.key_expr), query.payload, query)
 
-    def _receive_samples(
-        self, channel: zenoh.handlers.Handler[zenoh.Sample], skip: zenoh.KeyExpr | None
-    ) -> None:
-        while (sample := _recv(channel)) is not None:
-            if sample.kind == zenoh.SampleKind.PUT and not (
-                skip is not None and sample.key_expr.intersects(skip)
-            ):
-                self._accept(str(sample.key_expr), sample.payload, None)
+    def _sample(self, sample: zenoh.Sample, skip: zenoh.KeyExpr | None) -> None:
+        if sample.kind == zenoh.SampleKind.PUT and not (
+            skip is not None and sample.key_expr.intersects(skip)
+        ):
+            self._accept(str(sample.key_expr), sample.payload, None)
 
     def _accept(self, key: str, payload: zenoh.ZBytes | None, query: zenoh.Query | None) -> None:
         """Decode and submit one sector; whatever happens, its answer ends up in the outbox once."""
         job = _Job(self.keys.stream_id_of(key), query)
         if job.key_id == PROBE_CHUNK and query is not None:  # a client checking this worker's token: an
             why = ServiceError(ErrorCode.BAD_REQUEST, f"worker {self.worker_id}: a probe, not a sector")
-            self._outbox.put((job, job.error(why)))  # answer from this session, counted nowhere
+            self._threads.send(job, job.error(why))  # answer from this session, counted nowhere
             return
         if STREAM_ID_RE.fullmatch(job.key_id) and len(job.key_id) <= self.limits.max_string_len:
             job.stream_id = job.key_id
@@ -322,34 +292,21 @@ class ZenohTransport:
             self._reject(job, ServiceError(ErrorCode.INTERNAL, f"{type(e).__name__}: {e}"))
             return
         job.stream_id, job.seq = msg.stream_id, msg.seq
-        with self._cond:
-            self._inflight.add(job)
+        self._threads.admit(job)
         future = submit_or_fail(self.submit, msg)
         future.add_done_callback(partial(self._settled, job))
 
     def _reject(self, job: _Job, e: ServiceError) -> None:
         if self.on_reject is not None:
             self.on_reject(e.code)
-        self._outbox.put((job, job.error(e)))
+        self._threads.send(job, job.error(e))
 
     def _settled(self, job: _Job, future: Future[DetectionsReply]) -> None:
         """Done-callback (worker thread): hand the outcome to the replier; never touches zenoh."""
-        with self._cond:
-            if job not in self._inflight:
-                return  # close() already answered it
-            self._inflight.discard(job)
-            self._cond.notify_all()
-        self._outbox.put((job, _outcome(job, future)))
+        if self._threads.settle(job):  # else close() already answered it
+            self._threads.send(job, _outcome(job, future))
 
     # ------------------------------------------------------------------------------------------- output
-
-    def _reply_loop(self) -> None:
-        while (item := self._outbox.get()) is not None:
-            job, outcome = item
-            try:
-                self._deliver(job, outcome)
-            except Exception:
-                log.exception("zenoh: could not deliver the answer for stream %s seq %s", job.key_id, job.seq)
 
     def _deliver(self, job: _Job, outcome: Outcome) -> None:
         ok = isinstance(outcome, DetectionsReply)
@@ -373,26 +330,6 @@ class ZenohTransport:
         self._session.put(
             key, payload, encoding=MSGPACK_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
         )
-
-
-def submit_or_fail(submit: Submit, msg: SectorMessage) -> Future[DetectionsReply]:
-    """`submit(msg)`, whose future answers the sector; a submit that raises (it should fail its future
-    instead) gives a failed future, so that the sector is answered all the same."""
-    try:
-        return submit(msg)
-    except Exception as e:
-        log.exception("submit raised for %s seq %d", msg.stream_id, msg.seq)
-        future: Future[DetectionsReply] = Future()
-        future.set_exception(e)
-        return future
-
-
-def _recv(channel: zenoh.handlers.Handler[T]) -> T | None:
-    """The next item, or None once the channel is closed (its entity undeclared) and empty."""
-    try:
-        return channel.recv()
-    except zenoh.ZError:
-        return None
 
 
 def _outcome(job: _Job, future: Future[DetectionsReply]) -> Outcome:

@@ -1,7 +1,7 @@
 """Test-only writers of ROS 2 data: sensor_msgs/msg/PointCloud2 CDR in the layouts real drivers publish, and
 recordings holding them (rosbag2 with MCAP or sqlite3 storage, a plain MCAP written by the `mcap` library).
 
-Nothing here is product code: the product only reads (lidar/pointcloud2.py, clients/recordings.py).
+Nothing here is product code: the product only reads (ros/pointcloud2.py, ros/recordings.py).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from contract import DetectionsReply, SectorMessage, Timings
-from lidar.pointcloud2 import POINT_FIELD_TYPES, POINTCLOUD2, typestore
-from server import ros2_messages as messages
+from ros import messages
+from ros.pointcloud2 import POINT_FIELD_TYPES, POINTCLOUD2, typestore
 
 FLOAT32, FLOAT64, UINT8, UINT16, UINT32 = 7, 8, 2, 4, 6
 

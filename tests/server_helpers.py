@@ -20,14 +20,14 @@ from conftest import kitti_scan
 
 from clients.bench.server import free_port
 from contract import MSGPACK, DetectionsReply, SectorMessage, decode_response, encode_sector
+from model.checkpoint import DEFAULT_SEED, load_default_model
 from model.config import tiny
 from model.detector import PHiM
-from model.graph.engine import Detector
+from model.engine import StreamEngine
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 from server.app import create_app
 from server.cli import uvicorn_config
-from server.default_model import DEFAULT_SEED, load_default_model
 from server.settings import Settings
 
 FIELDS = ("x", "y", "z", "intensity")
@@ -77,7 +77,7 @@ def post_first_sector(url: str, stream_id: str = "car-1") -> httpx.Response:
 
 def run_direct(det: StreamingDetector, sectors: list[np.ndarray]) -> list[Any]:
     """The reference: the same sectors through StreamingDetector.step, one stream, no server."""
-    state, out = det.init_state(), []
+    state, out = det.new_state(), []
     for s in sectors:
         (r,), (state,) = det.step([torch.from_numpy(s.copy())], [state])
         out.append(r.detections)
@@ -157,7 +157,7 @@ def make_settings(**overrides: Any) -> Settings:
 
 
 @contextlib.contextmanager
-def serve(det: Detector | None, wait_ready: bool = True, **overrides: Any) -> Iterator[RunningServer]:
+def serve(det: StreamEngine | None, wait_ready: bool = True, **overrides: Any) -> Iterator[RunningServer]:
     """A real uvicorn server (thread, 127.0.0.1, free port) around create_app with the given detector (None:
     the one the settings build)."""
     settings = make_settings(**overrides)

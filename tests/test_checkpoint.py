@@ -112,7 +112,7 @@ def test_init_weights_leave_out_the_columns_a_model_does_not_read(tmp_path):
     detections = []
     for model, points in ((four, zeroed), (three, turn), (four, turn)):
         det = StreamingDetector(model.eval())
-        states = [det.init_state()]
+        states = [det.new_state()]
         for sector in split_turn(points, model.cfg.sectors_per_turn):
             results, states = det.step([sector], states)
         detections.append(results[0].detections)

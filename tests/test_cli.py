@@ -15,8 +15,8 @@ from server_helpers import free_port
 
 from phim.cli import COMMANDS, Entry, Group, load
 from phim.cli import main as app
-from server.cli import serve
-from server.settings import Settings
+from server.cli import serve, setting_group
+from server.settings import SettingGroup, Settings
 
 HEAVY = ("torch", "zenoh", "fastapi", "uvicorn", "httpx", "matplotlib")
 
@@ -89,6 +89,29 @@ def test_serve_has_a_flag_for_every_setting_with_its_variable() -> None:
     for name in Settings.model_fields:
         assert f"PHIM_{name.upper()}" in out
     assert "--zenoh / --no-zenoh" in out and "--max-batch INTEGER" in out
+
+
+SERVE_HELP_LINES = 160  # at 80 columns (`phim serve --help | wc -l`); as one flat list it took 222
+
+
+def test_serve_help_lists_every_option_once_in_its_group_and_is_short() -> None:
+    out = CliRunner().invoke(app, ["serve", "--help"], terminal_width=80).output
+    sections: dict[str, list[str]] = {}
+    for line in out.splitlines():
+        if line.endswith(":") and not line.startswith(" "):
+            sections[line.removesuffix(":")] = []
+        elif line.startswith("  -") and sections:
+            sections[list(sections)[-1]].append(line.split()[0].rstrip(","))
+    assert list(sections) == [g.value for g in SettingGroup] + ["Other"]
+    assert sections["Other"] == ["-h"]
+    listed = [flag for flags in sections.values() for flag in flags]
+    assert len(listed) == len(set(listed)) == len(Settings.model_fields) + 1  # each once, and --help
+    for name, field in Settings.model_fields.items():
+        flag = "--" + name.removesuffix("_enabled").replace("_", "-")
+        assert flag in sections[setting_group(field).value], (name, sections)
+    assert "[default:" not in out  # a default the description names joins its variable's bracket
+    assert "PHIM_TENANT_QUEUE_SIZE; default: queue_size/2]" in " ".join(out.split())
+    assert len(out.splitlines()) <= SERVE_HELP_LINES, out
 
 
 @pytest.mark.parametrize(

@@ -135,7 +135,7 @@ def test_batched_equals_alone_on_cuda(models):
     turns = [split_turn(kitti_scan(i), gpu.cfg.sectors_per_turn) for i in (0, 1)]
     turns = [[s.to(CUDA) for s in t] for t in turns]
     alone = [stream(det, t)[0] for t in turns]
-    states = [det.init_state() for _ in turns]
+    states = [det.new_state() for _ in turns]
     for k in range(gpu.cfg.sectors_per_turn):
         results, states = det.step([turns[1][k], turns[0][k]], states)
         assert_same_detections(results[0].detections, alone[1][k].detections)
@@ -183,9 +183,9 @@ def test_bf16_graph_step_on_cuda_agrees_with_fp32(compile):
     KITTI turn agree with its fp32 ones as on the CPU (test_precision), states and outputs stay float32."""
     from test_precision import assert_agree
 
+    from model.checkpoint import load_default_model
     from model.config import Precision
     from model.graph.engine import GraphStreamingDetector
-    from server.default_model import load_default_model
 
     model = load_default_model(CUDA)[0]
     sectors = [s.cuda() for s in split_turn(kitti_scan(0), model.cfg.sectors_per_turn)]
@@ -224,9 +224,9 @@ def test_paper_graph_step_on_cuda_equals_eager(compile):
 
 
 def test_triton_segmented_scan_on_cuda_equals_its_twin():
-    """The graph step's segmented-scan kernels compiled for the GPU (test_graph_scan_triton runs them in
+    """The selective-scan Triton kernels compiled for the GPU (test_ops_scan_triton runs them in
     Triton's interpreter)."""
     from scan_triton_cases import cases
-    from test_graph_scan_triton import check_cases
+    from test_ops_scan_triton import check_cases
 
     check_cases(cases("cuda"))

@@ -291,3 +291,21 @@ def test_eval_without_the_refiner_scores_the_detector_alone(tmp_path: Path):
     alone = scored("--checkpoint", "default", "--no-refiner")
     assert alone == scored("--checkpoint", str(tmp_path / "detector.pt"))
     assert alone != scored("--checkpoint", "default")
+
+
+def test_train_refiner_reads_a_custom_folder(tmp_path: Path):
+    """`phim train-refiner --data custom:DIR --class-map ...` fits the refiner on the folder's training scans
+    (one pass, however many seeds: a second stream would read the same files) and records where from."""
+    scans = [small_scan(SimSource(5, SimConfig(sensor=Sensor.HDL32E))(i)) for i in range(2)]
+    data = write_folder(tmp_path / "custom", scans, {Split.TRAIN: [s.name for s in scans]})
+    out = tmp_path / "refined.pt"
+    args = ["train-refiner", "--data", f"custom:{data}", "--class-map", KITTI_MAP, "--out", str(out)]
+    done = CliRunner().invoke(app, [*args, "--seed", "1", "--seed", "2", "--epochs", "1", "--threads", "1"])
+    assert done.exit_code == 0, done.output
+    assert "from 1 x 2 scans of custom:" in done.output
+    meta = read_checkpoint(out)["meta"]["refiner"]
+    assert meta["data"] == f"custom:{data}" and meta["seeds"] == [1] and meta["scans"] == 2
+    assert load_checkpoint(out).refiner is not None
+    missing = f"custom:{tmp_path / 'none'}"
+    bad = CliRunner().invoke(app, ["train-refiner", "--data", missing, "--out", str(out)])
+    assert bad.exit_code == 2 and "--data" in bad.output

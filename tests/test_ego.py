@@ -77,7 +77,7 @@ def test_no_box_on_the_ego_vehicle_of_the_kitti_scans_and_its_points_never_reach
         scan = kitti_scan(i)
         own = on_ego(ego, scan[:, 0], scan[:, 1])  # (N,) the car's own returns
         assert int(own.sum()) >= 30, int(own.sum())  # KITTI's: 36-42 a scan (955 in 000000)
-        state = det.init_state()
+        state = det.new_state()
         for sector in split_turn(scan, det.cfg.sectors_per_turn):
             (r,), (state,) = det.step([sector], [state])
             centres = r.detections.boxes[:, :2]
@@ -98,7 +98,7 @@ def test_without_the_footprint_the_ego_box_comes_back() -> None:
     det.cfg = dataclasses.replace(det.cfg, ego=None)
     on_car = 0
     for i in range(6):
-        state = det.init_state()
+        state = det.new_state()
         for sector in split_turn(kitti_scan(i), det.cfg.sectors_per_turn):
             (r,), (state,) = det.step([sector], [state])
         centres = r.detections.boxes[:, :2]
@@ -117,7 +117,7 @@ def test_the_eager_and_whole_turn_paths_drop_the_same_points() -> None:
     det = StreamingDetector(model)
     outs = []
     for pts in (turn, with_car):
-        state = det.init_state()
+        state = det.new_state()
         for sector in split_turn(pts, model.cfg.sectors_per_turn):
             (r,), (state,) = det.step([sector], [state])
         outs.append(r)

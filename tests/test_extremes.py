@@ -118,7 +118,7 @@ def refine_group() -> int:
 
 def nms_group() -> int:
     from model.geometry.nms import _grouped_nms_torch
-    from model.geometry.nms_cpu import class_nms_batch_cpu, grouped_nms_cpu
+    from model.ops.nms_numba import class_nms_batch_cpu, grouped_nms_cpu
 
     rng, done = np.random.default_rng(52), 0
     base = np.concatenate([rng.uniform(-20, 20, (40, 2)), rng.uniform(-1, 1, (40, 1))], 1)
@@ -160,9 +160,9 @@ def voxelize_group() -> int:
     from test_voxelize import make_voxelizer
 
     from model.config import tiny
-    from model.graph.sites import SENTINEL
-    from model.graph.voxelize import _group_torch, _point_keys_torch
-    from model.graph.voxelize_cpu import grid_args, group_sorted, point_keys
+    from model.geometry.sparse_tensor import SENTINEL
+    from model.graph.voxelize import group_torch, point_keys_torch
+    from model.ops.voxelize_numba import grid_args, group_sorted, point_keys
 
     vox, rng, done = make_voxelizer(tiny().grid), np.random.default_rng(53), 0
     cells = 2 * math.prod(vox.spatial_shape)
@@ -181,57 +181,54 @@ def voxelize_group() -> int:
         case(name)
         points = torch.from_numpy(pts).reshape(2, 64, 4)
         for counts in (torch.tensor([64, 50]), torch.tensor([0, 0])):  # the rest is padding, extremes too
-            key, base, kept, out = point_keys(points, counts, vox.point_features, *grid_args(vox))
+            key, base, kept, out = point_keys(points, counts, vox.point_features, *grid_args(vox.grid))
             assert bool(((key == SENTINEL) | ((key >= 0) & (key < cells))).all()), name
             assert torch.equal(kept + out, counts), name
             if np.isfinite(pts).all():
-                want = _point_keys_torch(vox, points, counts)
+                want = point_keys_torch(vox, points, counts)
                 assert torch.equal(key, want[0]) and torch.equal(kept, want[2]), name
             sorted_key, order = torch.sort(key, stable=True)
             keys, vid, count, _ = group_sorted(sorted_key, order, base, 32)
             assert bool(((vid >= 0) & (vid <= 32)).all()) and int(count) <= int(kept.sum()), name
-            twin = _group_torch(vox, sorted_key, order, base, 32)
+            twin = group_torch(vox, sorted_key, order, base, 32)
             assert torch.equal(keys, twin[0]) and torch.equal(vid, twin[1]), name
         done += 1
     return done
 
 
 def graph_ops_group() -> int:
-    from model.graph.bev_cpu import bev_mean
-    from model.graph.conv_cpu import conv_pairs
-    from model.graph.scan_cpu import segmented_scan_cpu
-    from model.graph.search_cpu import sorted_search
     from model.graph.segments import stream_segments
-    from model.graph.sort_cpu import sort_keys_op
+    from model.ops.bev_mean_numba import bev_mean_numba
     from model.ops.scan_numba import selective_scan_numba
+    from model.ops.search_numba import search_numba
+    from model.ops.sort_numba import sort_keys_numba
+    from model.ops.table_conv_numba import table_conv_numba
 
     rng, done = np.random.default_rng(54), 0
     big = np.iinfo(np.int64)
     ints = torch.tensor([0, 1, 5, 2**40, 2**62, big.max, big.min, -1, 7, 2**62, 3], dtype=torch.int64)
     case("sort and search int64 extremes")
-    assert torch.equal(sort_keys_op(ints)[0], torch.sort(ints, stable=True)[0])
+    assert torch.equal(sort_keys_numba(ints)[0], torch.sort(ints, stable=True)[0])
     keys = torch.sort(ints[ints >= 0])[0]
-    assert torch.equal(
-        sorted_search(keys, ints.reshape(1, -1)), torch.searchsorted(keys, ints.reshape(1, -1))
-    )
+    assert torch.equal(search_numba(keys, ints.reshape(1, -1)), torch.searchsorted(keys, ints.reshape(1, -1)))
     done += 1
     for v in EXTREMES + NON_FINITE:
         case(f"features={v}")
         x = torch.from_numpy(rng.normal(0, 1, (40, 6)).astype(np.float32))
         x[::5] = v
         table = torch.from_numpy(rng.integers(0, 41, (30, 9)))  # 40: no row
-        assert conv_pairs(x, table, torch.ones(9, 6, 4), torch.zeros(4)).shape == (30, 4)
+        assert table_conv_numba(x, table, torch.ones(9, 6, 4), torch.zeros(4)).shape == (30, 4)
         column = torch.from_numpy(rng.integers(-(2**40), 2**40, (2, 20)))
         column[0, :3] = torch.tensor([big.min, big.max, -1])
         cell_table = torch.from_numpy(rng.integers(-1, 12, (16, 3)))
-        out = bev_mean(
+        out = bev_mean_numba(
             x[:40].reshape(2, 20, 6), column, torch.ones(2, 20, dtype=torch.bool), cell_table, 3, 4
         )
         assert out.shape == (2, 3, 4, 6)
         u = x[:, :4].contiguous()  # (T, D) tokens
         dt, a, bc = u.abs(), -torch.ones(4, 3), torch.full((40, 3), float(v))
         segs = stream_segments(torch.arange(40) // 20, torch.arange(40) % 7 != 3, 2)
-        y, final = segmented_scan_cpu(u, dt, a, bc, bc, segs, torch.zeros(2, 4, 3))
+        y, final = selective_scan_numba(u, dt, a, bc, bc, segs, torch.zeros(2, 4, 3))
         assert y.shape == (40, 4) and bool((y[~segs.valid] == 0).all()) and final.shape == (2, 4, 3)
         y, final = selective_scan_numba(u, dt, a, bc, bc, torch.tensor([0, 25, 40], dtype=torch.int32))
         assert y.shape == (40, 4) and final.shape == (2, 4, 3)
@@ -242,8 +239,8 @@ def graph_ops_group() -> int:
 def model_group() -> int:
     """The default model's eager step on sectors no admission checked (the model, eval and training paths
     call the kernels too): the issue's sector must give boxes (its refiner lookup ran), the rest anything."""
+    from model.checkpoint import load_default_model
     from model.stream import StreamingDetector
-    from server.default_model import load_default_model
 
     det, rng, done = StreamingDetector(load_default_model("cpu")[0]), np.random.default_rng(55), 0
     cases = [("the issue's sector", killer_sector())]
@@ -258,7 +255,7 @@ def model_group() -> int:
     cases += [("one point", cluster(rng, 1)), ("random", spoil(rng, cluster(rng), 4, 0.1))]
     for name, pts in cases:
         case(name)
-        state = det.init_state()
+        state = det.new_state()
         with torch.inference_mode():
             for _ in range(2 if done == 0 else 1):  # the issue's: again with its points buffered
                 (result,), (state,) = det.step([torch.from_numpy(pts)], [state])

@@ -62,8 +62,8 @@ def mislabelled_cloud() -> bytes:
     """A little-endian PointCloud2 flagged `is_bigendian` (CDR): finite coordinates up to ~3e38 as read."""
     from ros2_helpers import VELODYNE_XYZIRT, pointcloud2_message
 
-    from lidar.pointcloud2 import POINTCLOUD2, typestore
     from lidar.synthetic import synthetic_turn
+    from ros.pointcloud2 import POINTCLOUD2, typestore
 
     msg = dataclasses.replace(pointcloud2_message(synthetic_turn(seed=3)), is_bigendian=True)
     assert not VELODYNE_XYZIRT.big_endian  # the data under the flag is little-endian
@@ -71,7 +71,7 @@ def mislabelled_cloud() -> bytes:
 
 
 def test_a_pointcloud2_whose_byte_order_lies_is_refused_naming_the_field() -> None:
-    from lidar.pointcloud2 import decode_pointcloud2, pointcloud2_points
+    from ros.pointcloud2 import decode_pointcloud2, pointcloud2_points
 
     msg = decode_pointcloud2(mislabelled_cloud())
     with pytest.raises(ValueError, match=r"PointCloud2 field 'x': \d+ points beyond 10000 m .*is_bigendian"):

@@ -7,7 +7,7 @@ import torch
 
 from model.config import tiny
 from model.geometry.sparse_tensor import SparseTensor
-from model.graph.bev import dense_cell_table, polar_to_bev, polar_to_bev_fixed
+from model.graph.bev import dense_cell_table, polar_to_bev
 from model.layers.polar_bev import PolarToBEV
 
 
@@ -33,8 +33,8 @@ def test_cpu_kernel_matches_twin_and_eager(dtype: torch.dtype):
     to_bev = PolarToBEV(cfg.grid, cfg.bev)
     table = dense_cell_table(to_bev)
     feats, r, theta, valid = _rows(to_bev, 2, 4096, 8, dtype, seed=0)
-    fast = polar_to_bev(to_bev, table, feats, r, theta, valid)  # the numba kernel on CPU tensors
-    twin = polar_to_bev_fixed(to_bev, table, feats, r, theta, valid)
+    fast = polar_to_bev(to_bev, table, feats, r, theta, valid, fast=True)  # the numba kernel
+    twin = polar_to_bev(to_bev, table, feats, r, theta, valid, fast=False)  # model.ops.bev_mean_torch
     assert fast.shape == twin.shape == (2, 8, cfg.bev.ny, cfg.bev.nx) and fast.dtype == dtype
     tol = 1e-5 if dtype == torch.float32 else 1e-12
     torch.testing.assert_close(fast, twin, rtol=tol, atol=tol)

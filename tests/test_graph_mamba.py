@@ -11,11 +11,12 @@ from torch import Tensor
 
 from model.config import BackboneConfig, MambaConfig, ScanImpl
 from model.geometry.sparse_tensor import SparseTensor, linear_key
-from model.graph.mamba import mamba_forward, segmented_scan, segmented_scan_op
-from model.graph.segments import Segments, frustum_segments, stream_segments
-from model.layers.mamba import Mamba, MambaState
-from model.layers.phim_block import PHiMBlock, frustum_cu_seqlens, reversed_cu_seqlens
-from model.ops.scan_torch import selective_scan_ref
+from model.graph.segments import frustum_segments, stream_segments
+from model.layers.mamba import Mamba, MambaState, Packing
+from model.layers.phim_block import LocalPackings, PHiMBlock, frustum_cu_seqlens, reversed_cu_seqlens
+from model.ops.scan_numba import selective_scan_numba
+from model.ops.scan_torch import selective_scan_chunked, selective_scan_ref
+from model.ops.segments import Segments
 
 CFG = MambaConfig(d_state=4, d_conv=4, expand=2, chunk_size=8, scan=ScanImpl.REFERENCE)
 LENGTHS = [5, 0, 1, 2, 37, 3, 0, 11]  # per stream: empty, 1, 2, < d_conv - 1 and longer than a chunk
@@ -38,6 +39,11 @@ def _stream_pack(lengths: list[int], pad: int) -> tuple[Tensor, Tensor]:
 
 def _layer(d_model: int, shared_decay: bool, **kw) -> Mamba:
     return Mamba(d_model, replace(CFG, shared_decay=shared_decay, **kw))
+
+
+def _run(m: Mamba, x: Tensor, segs: Segments, state: MambaState | None = None) -> tuple[Tensor, MambaState]:
+    """The layer over a segmented pack, as the fixed-shape step runs it."""
+    return m(x, Packing.of_segments(segs, m.cfg.d_conv, ScanImpl.AUTO), state)
 
 
 def _random_state(m: Mamba, S: int) -> MambaState:
@@ -71,23 +77,22 @@ def test_segmented_scan_matches_reference(shared_decay: bool, with_h0: bool, chu
     delta[~valid] = -50.0  # garbage padding: exp(delta A) would overflow there
     A = -torch.rand(D, 1 if shared_decay else N, **f64) * 4
     h0 = torch.randn(S, D, N, **f64) if with_h0 else None
-    y, final = segmented_scan(u, delta, A, B, C, segs, h0, chunk_size)
+    y, final = selective_scan_chunked(u, delta, A, B, C, segs, h0, chunk_size)
     cu = _cu(LENGTHS)
     y_ref, final_ref = selective_scan_ref(u[:T0], delta[:T0], A, B[:T0], C[:T0], cu, h0)
     torch.testing.assert_close(y[:T0], y_ref, rtol=1e-12, atol=1e-12)
     assert torch.equal(y[T0:], torch.zeros_like(y[T0:]))
-    if with_h0:
-        assert final is not None
-        torch.testing.assert_close(final, final_ref, rtol=1e-12, atol=1e-12)
-    else:
-        assert final is None
+    torch.testing.assert_close(final, final_ref, rtol=1e-12, atol=1e-12)  # from zeros without h0
+    y_seg, final_seg = selective_scan_ref(u, delta, A, B, C, segs, h0)  # the reference on the pack itself
+    torch.testing.assert_close(y, y_seg, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(final, final_seg, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("shared_decay", [False, True])
 @pytest.mark.parametrize("with_h0", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_cpu_kernel_matches_torch_twin(shared_decay: bool, with_h0: bool, dtype: torch.dtype):
-    """The op's CPU kernel (numba, `model.graph.scan_cpu`) against the torch twin, streams and padding."""
+    """The CPU kernel (numba, `model.ops.scan_numba`) against the chunked twin, streams and padding."""
     S, D, N = len(LENGTHS), 5, 4
     batch, valid = _stream_pack(LENGTHS, PAD)
     T = batch.numel()
@@ -97,17 +102,13 @@ def test_cpu_kernel_matches_torch_twin(shared_decay: bool, with_h0: bool, dtype:
     delta[~valid] = -50.0
     A = -torch.rand(D, 1 if shared_decay else N, dtype=dtype) * 4
     h0 = torch.randn(S, D, N, dtype=dtype) if with_h0 else None
-    y_ref, final_ref = segmented_scan(u, delta, A, B, C, segs, h0, 4)
-    y, final = segmented_scan_op(u, delta, A, B, C, segs.start, segs.valid, segs.seg, segs.last, h0, 4)
+    y_ref, final_ref = selective_scan_chunked(u, delta, A, B, C, segs, h0, 4)
+    y, final = selective_scan_numba(u, delta, A, B, C, segs, h0)
     tol = {"rtol": 1e-12, "atol": 1e-12} if dtype == torch.float64 else {"rtol": 1e-5, "atol": 1e-5}
     assert y.dtype == dtype
     torch.testing.assert_close(y, y_ref, **tol)
     assert torch.equal(y[~valid], torch.zeros_like(y[~valid]))
-    if with_h0:
-        assert final_ref is not None
-        torch.testing.assert_close(final, final_ref, **tol)
-    else:
-        assert final.numel() == 0
+    torch.testing.assert_close(final, final_ref, **tol)  # from zeros without h0
 
 
 def test_segmented_scan_gradients_match_reference():
@@ -121,13 +122,16 @@ def test_segmented_scan_gradients_match_reference():
     A, h0 = -torch.rand(D, N, **f64), torch.randn(S, D, N, **f64)
     B, C = torch.randn(T, N, **f64), torch.randn(T, N, **f64)
     leaves = [t.requires_grad_() for t in (u, delta, A, h0)]
-    y, final = segmented_scan(u, delta, A, B, C, segs, h0, 8)
-    assert final is not None
-    grads = torch.autograd.grad(y.sum() + final.square().sum(), leaves)
     y_ref, final_ref = selective_scan_ref(u[:T0], delta[:T0], A, B[:T0], C[:T0], _cu(LENGTHS), h0)
     grads_ref = torch.autograd.grad(y_ref.sum() + final_ref.square().sum(), leaves)
-    for g, g_ref in zip(grads, grads_ref, strict=True):
-        torch.testing.assert_close(g, g_ref, rtol=1e-10, atol=1e-10)
+    for scan in (
+        lambda *a: selective_scan_chunked(*a, 8),
+        selective_scan_numba,
+    ):  # numba: its backward kernel
+        y, final = scan(u, delta, A, B, C, segs, h0)
+        grads = torch.autograd.grad(y.sum() + final.square().sum(), leaves)
+        for g, g_ref in zip(grads, grads_ref, strict=True):
+            torch.testing.assert_close(g, g_ref, rtol=1e-10, atol=1e-10)
 
 
 @pytest.mark.parametrize("shared_decay", [False, True])
@@ -142,8 +146,7 @@ def test_stream_pack_with_state_matches_eager(shared_decay: bool, impl: ScanImpl
     state = _random_state(m, S)
     with torch.no_grad():
         y_ref, state_ref = m(x[:T0], _cu(LENGTHS), state)
-        y, new = mamba_forward(m, x, stream_segments(batch, valid, S), state)
-    assert new is not None
+        y, new = _run(m, x, stream_segments(batch, valid, S), state)
     assert torch.isfinite(y).all()
     torch.testing.assert_close(y[:T0], y_ref, **TOL)
     torch.testing.assert_close(new.conv, state_ref.conv, **TOL)
@@ -159,10 +162,10 @@ def test_stream_pack_without_state_matches_eager():
     T0 = int(valid.sum())
     x = torch.randn(batch.numel(), 8)
     with torch.no_grad():
-        y_ref, _ = m(x[:T0], _cu(LENGTHS))
-        y, new = mamba_forward(m, x, stream_segments(batch, valid, len(LENGTHS)))
-    assert new is None
+        y_ref, state_ref = m(x[:T0], _cu(LENGTHS))
+        y, new = _run(m, x, stream_segments(batch, valid, len(LENGTHS)))
     torch.testing.assert_close(y[:T0], y_ref, **TOL)
+    torch.testing.assert_close(new.ssm, state_ref.ssm, **TOL)
 
 
 def _sites(spatial_shape: tuple[int, int, int], pad: int) -> tuple[Tensor, Tensor, int]:
@@ -203,17 +206,15 @@ def test_frustum_packs_match_local_block(shared_decay: bool):
     assert fwd_segs.start[~valid].all() and bwd_segs.start[:PAD].all()  # every padding row starts one
     with torch.no_grad():
         ref = block.local(x, block.local_packings(x))  # (T0, 16)
-        h = block.norm_local(feats)  # (T, 16)
-        fwd, _ = mamba_forward(block.fwd_mamba, h, fwd_segs)
-        bwd, _ = mamba_forward(block.bwd_mamba, h.flip(0), bwd_segs)
-        out = feats + fwd + bwd.flip(0)  # (T, 16)
+        d_conv = cfg.mamba.d_conv
+        packs = (Packing.of_segments(s, d_conv, ScanImpl.AUTO) for s in (fwd_segs, bwd_segs))
+        out = block.local(feats, LocalPackings(*packs))  # (T, 16)
     assert torch.isfinite(out).all()
     torch.testing.assert_close(out[:T0], ref, **TOL)
 
 
 def _run_both_packs(m: Mamba, x: Tensor, segs: Segments, state: MambaState) -> list[Tensor]:
-    y, new = mamba_forward(m, x, segs, state)
-    assert new is not None
+    y, new = _run(m, x, segs, state)
     return [y, new.conv, new.ssm]
 
 
@@ -233,8 +234,8 @@ def test_padding_rows_change_no_valid_output():
         b = _run_both_packs(m, x2, stream_segments(batch2, valid, S), state)
         # the backward pack: padding first
         _, bwd = frustum_segments(torch.zeros(batch.numel(), 4, dtype=torch.int64), valid, 1, 1)
-        c, _ = mamba_forward(m, x1.flip(0), bwd)
-        d, _ = mamba_forward(m, x2.flip(0), bwd)
+        c, _ = _run(m, x1.flip(0), bwd)
+        d, _ = _run(m, x2.flip(0), bwd)
     assert not torch.equal(a[0][T0:], b[0][T0:])  # the padding inputs did differ
     assert torch.equal(a[0][:T0], b[0][:T0])
     assert torch.equal(a[1], b[1]) and torch.equal(a[2], b[2])
@@ -252,8 +253,7 @@ def test_compiled_stream_step_equals_eager():
     state = _random_state(m, S)
 
     def step(x: Tensor, batch: Tensor, valid: Tensor, conv: Tensor, ssm: Tensor) -> tuple[Tensor, ...]:
-        y, new = mamba_forward(m, x, stream_segments(batch, valid, S), MambaState(conv, ssm))
-        assert new is not None
+        y, new = _run(m, x, stream_segments(batch, valid, S), MambaState(conv, ssm))
         return y, new.conv, new.ssm
 
     compiled = torch.compile(step, fullgraph=True, dynamic=False)

@@ -12,10 +12,10 @@ from test_streaming import assert_same_detections, make_model
 
 from lidar.synthetic import synthetic_turn
 from model.detector import PHiM
-from model.graph.engine import GraphStreamingDetector, SectorRejected
-from model.graph.slots import SlotsExhausted
+from model.engine import SectorRejected, SectorResult, StatesExhausted
+from model.graph.engine import GraphStreamingDetector
 from model.sectors import split_turn
-from model.stream import SectorResult, StreamingDetector
+from model.stream import StreamingDetector
 
 
 @pytest.fixture(scope="module")
@@ -30,15 +30,15 @@ def sectors(model: PHiM) -> list[torch.Tensor]:
 
 def test_slots_are_taken_given_back_and_stale_handles_refused(model: PHiM, sectors):
     det = GraphStreamingDetector(model, slots=3)
-    a, b, c = (det.init_state() for _ in range(3))
+    a, b, c = (det.new_state() for _ in range(3))
     assert sorted(s.slot for s in (a, b, c)) == [0, 1, 2] and det.slots.free == 0
-    with pytest.raises(SlotsExhausted, match="all 3 stream-state slots are taken"):
-        det.init_state()
+    with pytest.raises(StatesExhausted, match="all 3 stream-state slots are taken"):
+        det.new_state()
     det.release(b)
     assert det.slots.free == 1
     with pytest.raises(ValueError, match="slot 1 was released since this state was made"):
         det.release(b)
-    d = det.init_state()
+    d = det.new_state()
     assert d.slot == b.slot
     with pytest.raises(ValueError, match="stale"):
         det.step([sectors[0]], [b])
@@ -47,15 +47,15 @@ def test_slots_are_taken_given_back_and_stale_handles_refused(model: PHiM, secto
 
 def test_two_states_of_one_slot_in_one_batch_are_refused(model: PHiM, sectors):
     det = GraphStreamingDetector(model, slots=2)
-    a = det.init_state()
+    a = det.new_state()
     with pytest.raises(ValueError, match=r"states: slots \[0\] appear twice in one batch"):
         det.step(sectors[:2], [a, det.reset(a)])
 
 
 def test_a_failed_step_changes_no_slot(model: PHiM, sectors, monkeypatch: pytest.MonkeyPatch):
     det, eager = GraphStreamingDetector(model, slots=2), StreamingDetector(model)
-    _, states = det.step(sectors[:2], [det.init_state(), det.init_state()])
-    _, e_states = eager.step(sectors[:2], [eager.init_state(), eager.init_state()])
+    _, states = det.step(sectors[:2], [det.new_state(), det.new_state()])
+    _, e_states = eager.step(sectors[:2], [eager.new_state(), eager.new_state()])
     before = [t.clone() for t in det.slots.rows.tensors()]  # every row written: both slots and the blank
     real = det._run
 
@@ -75,7 +75,7 @@ def test_a_failed_step_changes_no_slot(model: PHiM, sectors, monkeypatch: pytest
 
 def test_an_eager_state_written_into_a_slot_goes_on(model: PHiM, sectors):
     det, eager = GraphStreamingDetector(model, slots=2), StreamingDetector(model)
-    e_state = eager.init_state()
+    e_state = eager.new_state()
     for s in sectors[:2]:
         _, (e_state,) = eager.step([s], [e_state])
     state = det.from_stream_state(e_state)
@@ -94,13 +94,13 @@ def test_an_eager_state_written_into_a_slot_goes_on(model: PHiM, sectors):
 def test_an_oversized_sector_fails_alone_and_its_state_stays(model: PHiM, sectors):
     det, eager = GraphStreamingDetector(model, sector_voxels=256, slots=2), StreamingDetector(model)
     light = [s[:120] for s in sectors]  # at most 120 voxels each
-    _, (a, b) = det.step(light[:2], [det.init_state(), det.init_state()])
-    _, (ea, eb) = eager.step(light[:2], [eager.init_state(), eager.init_state()])
+    _, (a, b) = det.step(light[:2], [det.new_state(), det.new_state()])
+    _, (ea, eb) = eager.step(light[:2], [eager.new_state(), eager.new_state()])
     kept = _tensors(det, a)
     (big, ok), (a2, b2) = det.step([sectors[2], light[2]], [a, b])
     assert isinstance(big, SectorRejected) and big.field == "points" and big.voxels > 256
     assert big.message == (
-        f"points: a sector of {big.voxels} voxels; the fixed engine buffers at most 256 voxels per sector "
+        f"points: a sector of {big.voxels} voxels; the graph engine buffers at most 256 voxels per sector "
         "(sector_voxels): raise it (phim serve --sector-voxels, PHIM_SECTOR_VOXELS) or send fewer points"
     )
     assert a2 == a

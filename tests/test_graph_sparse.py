@@ -12,15 +12,16 @@ from torch import Tensor
 from lidar.samples import KITTI_000000
 from model.config import VFEConfig, paper, tiny
 from model.geometry.rulebook import Plane
-from model.geometry.sparse_tensor import SparseTensor, linear_key
-from model.graph.conv_cpu import _identity_prefix, conv_pairs
-from model.graph.search_cpu import sorted_search
-from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
-from model.graph.sort_cpu import sort_keys_op
-from model.graph.sparse_conv import conv_fixed, conv_gemm, inverse_table, strided_sites, subm_table
+from model.geometry.sparse_tensor import SENTINEL, SparseTensor, linear_key
+from model.graph.sites import Sites, compact_sorted, make_sites
+from model.graph.sparse_conv import inverse_table, strided_sites, subm_table
 from model.graph.voxelize import voxelize_fixed
 from model.layers.sparse_conv import SparseConv2d, SparseInverseConv2d
 from model.layers.voxelize import PolarVoxelizer
+from model.ops.search import search
+from model.ops.sort import sort_keys
+from model.ops.table_conv import table_conv, table_conv_torch
+from model.ops.table_conv_numba import _identity_prefix
 from model.sectors import load_kitti_bin, split_turn
 
 SHAPE = (12, 10, 7)  # (R, THETA, Z)
@@ -73,8 +74,8 @@ def test_search_kernel_is_searchsorted(n_keys: int) -> None:
         wild[1, ::7] = SENTINEL + 1  # past every key
         wild[2, :20] = padded[-1] if len(padded) else 0  # the largest key itself
         for queries in (shifted, wild, wild.sort(dim=1).values):
-            got = sorted_search(padded, queries.contiguous())
-            assert torch.equal(got, torch.searchsorted(padded, queries)), (n_keys, queries)
+            got = search(padded, queries.contiguous(), fast=True)
+            assert torch.equal(got, search(padded, queries, fast=False)), (n_keys, queries)
 
 
 @pytest.mark.parametrize("n", [0, 1, 5000])
@@ -86,14 +87,14 @@ def test_sort_kernel_is_torch_stable_sort(n: int, top: int) -> None:
     keys = torch.randint(0, top, (n,), generator=g)
     keys[torch.rand(n, generator=g) < 0.3] = SENTINEL
     keys[: n // 10] = keys[n // 10 : 2 * (n // 10)]  # duplicates, some of them SENTINEL
-    values, order = sort_keys_op(keys)
-    want_values, want_order = torch.sort(keys, stable=True)
+    values, order = sort_keys(keys, fast=True)
+    want_values, want_order = sort_keys(keys, fast=False)
     assert torch.equal(values, want_values) and torch.equal(order, want_order)
 
 
 def test_sort_kernel_takes_negative_keys_through_torch() -> None:
     keys = torch.tensor([3, -1, SENTINEL, -7, 3, 0])
-    values, order = sort_keys_op(keys)
+    values, order = sort_keys(keys, fast=True)
     assert values.tolist() == [-7, -1, 0, 3, 3, SENTINEL] and order.tolist() == [3, 1, 5, 0, 4, 2]
 
 
@@ -105,7 +106,7 @@ def test_sites_padding_rows() -> None:
     assert bool((coords[:, 1:] < torch.tensor(SHAPE)).all())
 
 
-CONVS = [conv_fixed, conv_gemm]  # on the CPU: the kernel over the entries naming a row; the implicit GEMM
+CONVS = [table_conv, table_conv_torch]  # on the CPU: the kernel over the entries naming a row; implicit GEMM
 
 
 @pytest.mark.parametrize("conv_fn", CONVS)
@@ -179,12 +180,11 @@ def test_conv_kernel_equals_implicit_gemm_on_any_table(dtype: torch.dtype, bias:
     table[:, 4] = cap_in  # an offset with no entry
     table[5, :] = 2  # one input row through every offset
     for t in (table, torch.full_like(table, cap_in)):
-        out = conv_pairs(x, t, w, b)
+        out = table_conv(x, t, w, b, fast=True)
         assert out.dtype == dtype and out.shape == (cap_out, 7)
-        torch.testing.assert_close(out, conv_gemm(x, t, w, b))
-    assert torch.equal(
-        conv_pairs(x, torch.full_like(table, cap_in), w, b)[0], b if bias else torch.zeros(7, dtype=dtype)
-    )
+        torch.testing.assert_close(out, table_conv_torch(x, t, w, b))
+    empty = table_conv(x, torch.full_like(table, cap_in), w, b, fast=True)
+    assert torch.equal(empty[0], b if bias else torch.zeros(7, dtype=dtype))
 
 
 @pytest.mark.parametrize("n", [0, 17, 30])
@@ -206,7 +206,7 @@ def test_conv_kernel_centre_shortcut_equals_implicit_gemm(n: int) -> None:
     assert _identity_prefix(table.numpy(), cap_in, kk // 2) == n  # the shortcut is taken
     assert _identity_prefix(gap.numpy(), cap_in, kk // 2) == (n if n + 1 >= cap_in else -1)
     for t in (table, gap):
-        torch.testing.assert_close(conv_pairs(x, t, w, b), conv_gemm(x, t, w, b))
+        torch.testing.assert_close(table_conv(x, t, w, b, fast=True), table_conv_torch(x, t, w, b))
 
 
 def test_strided_overflow_is_flagged_and_finite() -> None:
@@ -215,7 +215,7 @@ def test_strided_overflow_is_flagged_and_finite() -> None:
     with torch.no_grad():
         ref, rb = conv(SparseTensor(torch.randn(200, 4), coords, SHAPE, BATCH))
         small, table = strided_sites(sites, 3, (2, 2), Plane.RZ, out_cap=rb.num_out - 5)
-        out = conv_fixed(torch.randn(220, 4), table, conv.weight, conv.bias)
+        out = table_conv(torch.randn(220, 4), table, conv.weight, conv.bias)
         inv_table = inverse_table(sites, small, 3, (2, 2), Plane.RZ)
     assert bool(small.overflow) and int(small.count) == rb.num_out
     assert torch.equal(small.coords, ref.coords[: small.cap])  # the first sites in key order are kept
@@ -288,7 +288,7 @@ def test_compiled_subm_conv_matches_eager() -> None:
 
     def step(keys: Tensor, coords: Tensor, count: Tensor, x: Tensor, w: Tensor, b: Tensor) -> Tensor:
         s = Sites(keys, coords, SHAPE, BATCH, count)
-        return conv_fixed(x, subm_table(s, (3, 3), Plane.RZ), w, b)
+        return table_conv(x, subm_table(s, (3, 3), Plane.RZ), w, b)
 
     compiled = torch.compile(step, fullgraph=True, dynamic=False)
     args = (sites.keys, sites.coords, sites.count, x, conv.weight.detach(), conv.bias.detach())

@@ -43,7 +43,7 @@ def assert_same_state(g: GraphStreamState, e: StreamState) -> None:
 def run_both(graph: GraphStreamingDetector, eager: StreamingDetector, batches: list[list[torch.Tensor]]):
     """Step both detectors through `batches` (one sector per stream each) and compare every step."""
     n = len(batches[0])
-    g_states, e_states = [graph.init_state() for _ in range(n)], [eager.init_state() for _ in range(n)]
+    g_states, e_states = [graph.new_state() for _ in range(n)], [eager.new_state() for _ in range(n)]
     boxes = 0
     for sectors in batches:
         g_res, g_states = graph.step(sectors, g_states)
@@ -106,7 +106,7 @@ def test_sectors_up_to_sector_points_share_one_bucket_and_padding_changes_nothin
     sectors = split_turn(torch.from_numpy(synthetic_turn(seed=3)), model.cfg.sectors_per_turn)
     small = [s[: 3000 * (k + 1)] for k, s in enumerate(sectors)]  # 3,000 to 12,000 points
     graph, eager = GraphStreamingDetector(model, sector_points=12_000), StreamingDetector(model)
-    fresh = graph.init_state()
+    fresh = graph.new_state()
     padded = {graph.inputs([s], [fresh])[0].shape[1] for s in small}
     graph.release(fresh)
     assert padded == {row_bucket(12_000)}

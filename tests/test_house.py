@@ -1,6 +1,7 @@
 """The house rules (docs/architecture.md, "The house"), read from every module's import statements, including
 those inside functions: imports run one way, clients -> contract <- server -> model, with the data layer
-(lidar) beneath clients, server and model, and no cycles."""
+(lidar) beneath clients, server and model, ROS 2 and Foxglove (ros) on it beneath clients and server, and no
+cycles."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from collections.abc import Callable
 import pytest
 from conftest import REPO
 
-PACKAGES = ("contract", "lidar", "phim", "model", "server", "clients")
+PACKAGES = ("contract", "lidar", "ros", "phim", "model", "server", "clients")
 STDLIB = sys.stdlib_module_names
 
 
@@ -57,6 +58,14 @@ def test_the_contract_imports_only_numpy_msgpack_and_the_standard_library() -> N
     assert offenders("contract", lambda d: top(d) in allowed) == []
 
 
+def test_ros_imports_the_contract_the_data_layer_and_its_codecs_only() -> None:
+    # ROS 2 messages, PointCloud2, recordings and Foxglove scenes: torch-free, zenoh-free (the bridge's
+    # transport is server/ros2_bridge.py), beneath clients and server
+    allowed = {"ros", "contract", "lidar", "numpy", "msgspec", "rosbags", "mcap", "foxglove"} | STDLIB
+    assert imports_of("ros"), "ros"
+    assert offenders("ros", lambda d: top(d) in allowed) == []
+
+
 @pytest.mark.parametrize(
     ("package", "forbidden"),
     [
@@ -64,7 +73,7 @@ def test_the_contract_imports_only_numpy_msgpack_and_the_standard_library() -> N
         ("clients", ("server", "torch", "model")),
         ("model", ("server", "clients")),
         ("model.eval", ("model.train",)),
-        ("lidar", ("torch", "model", "server", "clients")),
+        ("lidar", ("torch", "model", "server", "clients", "ros")),
         ("phim", ("model", "server", "clients", "contract", "torch")),
     ],
 )
@@ -74,6 +83,19 @@ def test_imports_run_one_way(package: str, forbidden: tuple[str, ...]) -> None:
 
     assert imports_of(package), package
     assert offenders(package, allowed) == []
+
+
+# the server reaches the model through the engine interface (model.engine: the engines' types, settings and
+# builder) and the configs; model.checkpoint names the shipped default (`python -m server.default_model`)
+SERVER_MODEL_IMPORTS = {"model.engine", "model.config", "model.checkpoint"}
+
+
+def test_the_server_reaches_the_model_through_the_engine_interface_only() -> None:
+    used = {d for deps in imports_of("server").values() for d in deps if top(d) == "model"}
+    assert "model.engine" in used and len(SERVER_MODEL_IMPORTS) <= 4
+    assert used <= SERVER_MODEL_IMPORTS, sorted(used - SERVER_MODEL_IMPORTS)
+    inside = ("model.graph", "model.ops", "model.geometry", "model.layers")  # how an engine runs
+    assert [d for d in used if d.startswith(tuple(p + "." for p in inside)) or d in inside] == []
 
 
 def test_no_import_cycles_between_modules() -> None:

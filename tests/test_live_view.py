@@ -26,7 +26,7 @@ from server_helpers import CONTROL, START_TIMEOUT_S, default_detector, sector_ms
 from clients.bench.server import free_port
 from contract import MSGPACK, DetectionsReply, decode_response, encode_sector
 from model.stream import StreamingDetector
-from server.live_view import LiveView, topics
+from ros.live_view import LiveView, topics
 from server.settings import Settings
 from server.worker import Worker, WorkerConfig
 
@@ -71,6 +71,7 @@ class FoxgloveClient:
     def __init__(self, ws: Any) -> None:
         self.ws = ws
         self.channels: dict[str, dict[str, Any]] = {}  # topic -> its advertisement
+        self.statuses: list[str] = []  # the server's status messages (e.g. dropped messages), for failures
 
     async def json(self, op: str) -> dict[str, Any]:
         """The next JSON message with this op (advertisements seen on the way are kept)."""
@@ -87,9 +88,10 @@ class FoxgloveClient:
         while not set(wanted) <= set(self.channels):
             await self.json("advertise")
 
-    async def subscribe(self, subscription: int, topic: str) -> None:
-        channel = {"id": subscription, "channelId": self.channels[topic]["id"]}
-        await self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [channel]}))
+    async def subscribe(self, wanted: dict[int, str]) -> None:
+        """Subscribe to these topics (subscription id -> topic) in one message."""
+        subs = [{"id": i, "channelId": self.channels[topic]["id"]} for i, topic in wanted.items()]
+        await self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
 
     async def message(self) -> tuple[int, bytes]:
         """The next message data: (subscription id, payload)."""
@@ -99,12 +101,16 @@ class FoxgloveClient:
                 assert msg[0] == MESSAGE_DATA, msg[:1]
                 subscription, _log_time = struct.unpack_from("<IQ", msg, 1)
                 return subscription, msg[13:]
+            if json.loads(msg)["op"] == "status":
+                self.statuses.append(msg)
 
 
 async def watch(url: str, port: int) -> tuple[DetectionsReply, dict[int, bytes], dict[str, Any], str]:
     """Connect, see a stream's channels come with its first sector, subscribe, send sectors until one is
     seen on both subscriptions -> (its reply, payload per subscription, channels, server name). The protocol
-    does not acknowledge a subscription: the sectors sent before the server has it are not drawn for us."""
+    does not acknowledge a subscription: the sectors sent before the server has it are not drawn for us. A
+    subscription sent right after the advertisement may find the channel not yet known to the server (a
+    status "Unknown channel ID", seen on a busy machine): that subscription is dead, so it is sent again."""
     async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
         assert ws.subprotocol == SUBPROTOCOL
         client = FoxgloveClient(ws)
@@ -113,15 +119,22 @@ async def watch(url: str, port: int) -> tuple[DetectionsReply, dict[int, bytes],
         assert points not in client.channels
         await asyncio.to_thread(post, url, "car-1", 0)
         await client.advertised(points, boxes)
-        await client.subscribe(7, boxes)
-        await client.subscribe(8, points)
+        subscriptions = {7: boxes, 8: points}
+        await client.subscribe(subscriptions)
         by_subscription = {7: client.channels[boxes], 8: client.channels[points]}
+        refusals = 0  # the server's "Unknown channel ID" statuses answered so far
         replies: dict[int, DetectionsReply] = {}
         seen: dict[int, dict[int, bytes]] = {}  # seq -> subscription -> payload
         deadline = time.monotonic() + WAIT_S
         both = lambda: [k for k, got in sorted(seen.items()) if len(got) == 2 and k in replies]  # noqa: E731
         while not both():
-            assert time.monotonic() < deadline, f"no sector seen on both subscriptions: {sorted(seen)}"
+            which = {k: sorted(got) for k, got in sorted(seen.items())}  # seq -> the subscriptions seen
+            assert time.monotonic() < deadline, f"no sector on both subscriptions: {which} {client.statuses}"
+            refused = [m for m in client.statuses if "Unknown channel ID" in m]
+            if len(refused) > refusals:  # subscribe again to what has not come yet
+                refusals = len(refused)
+                delivered = {i for got in seen.values() for i in got}
+                await client.subscribe({i: top for i, top in subscriptions.items() if i not in delivered})
             replies[len(replies) + 1] = await asyncio.to_thread(post, url, "car-1", len(replies) + 1)
             with contextlib.suppress(TimeoutError):  # what came in a second; late ones are kept too
                 while True:

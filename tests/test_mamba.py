@@ -13,6 +13,7 @@ from test_scan import CPU_IMPLS
 from model.config import MambaConfig, ScanImpl
 from model.layers.mamba import Mamba, MambaState, Packing, conv_gather_indices
 from model.ops.scan_torch import selective_scan_ref
+from model.ops.segments import Segments
 
 CFG = MambaConfig(d_state=4, d_conv=4, expand=2, chunk_size=8)
 
@@ -147,7 +148,7 @@ def test_empty_sequence_leaves_state_unchanged():
 
 def test_conv_gather_indices_hand_example():
     # sequences of 2, 0 and 4 tokens (T = 6), d_conv = 3: state rows start at 6, two per sequence
-    older, new_state = conv_gather_indices(_cu([2, 0, 4]), 6, 3)
+    older, new_state = conv_gather_indices(Segments.of_cu_seqlens(_cu([2, 0, 4]), 6), 3)
     # row 0: two steps back, row 1: one step back
     assert older.tolist() == [[6, 7, 10, 11, 2, 3], [7, 0, 11, 2, 3, 4]]
     assert new_state.tolist() == [[0, 1], [8, 9], [4, 5]]

@@ -1,4 +1,4 @@
-"""sensor_msgs/msg/PointCloud2 decoding (lidar/pointcloud2.py): every driver layout gives back the points
+"""sensor_msgs/msg/PointCloud2 decoding (ros/pointcloud2.py): every driver layout gives back the points
 it was written from (a KITTI scan where the samples are, else a synthetic turn), row padding, big-endian
 data, NaN returns, and errors that name the field."""
 
@@ -27,8 +27,8 @@ from ros2_helpers import (
     sample_turns,
 )
 
-from lidar.pointcloud2 import cloud_spin, decode_pointcloud2, pointcloud2_points, stamp_ns
 from lidar.readers import Spin
+from ros.pointcloud2 import cloud_spin, decode_pointcloud2, pointcloud2_points, stamp_ns
 
 INT_SCALES = {UINT8: 1 / 255, UINT16: 1 / 65535}  # integer intensity: 0..1 stored as 0..255 / 0..65535
 
@@ -150,9 +150,10 @@ def test_spin_from_the_net_rotation(turn: np.ndarray) -> None:
         assert cloud_spin(points[::-1]) is Spin.CW
 
 
-def test_lidar_imports_no_ros_library() -> None:
+def test_the_ros_package_imports_no_ros_library_until_one_is_used() -> None:
     code = (
-        "import sys, lidar.pointcloud2, lidar.recordings, phim.scene;"
+        "import sys, ros.pointcloud2, ros.recordings, ros.scene, ros.messages, ros.node, ros.scans;"
+        "import ros.live_view;"
         "print([m for m in ('rosbags', 'mcap', 'foxglove', 'torch') if m in sys.modules])"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)

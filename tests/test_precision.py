@@ -13,20 +13,19 @@ from conftest import kitti_scan
 from pydantic import ValidationError
 
 from lidar.sources import SimSource
-from model.config import Engine, MambaConfig, Precision, ScanImpl, tiny
+from model.checkpoint import load_default_model
+from model.config import MambaConfig, Precision, ScanImpl, tiny
 from model.eval.runner import predict_scan
 from model.geometry.boxes import Detections
-from model.graph.engine import streaming_detector
-from model.graph.mamba import mamba_forward
+from model.graph.engine import GraphStreamingDetector
 from model.graph.segments import stream_segments
-from model.layers.mamba import Mamba, MambaState
+from model.layers.mamba import Mamba, MambaState, Packing
 from model.ops.scan import scan_available, selective_scan
 from model.ops.sparse_conv_torch import gather_mm_scatter_torch
 from model.precision import autocast, check_precision
 from model.sectors import split_turn
 from model.stream import StreamingDetector, StreamState
 from server.app import build_detector
-from server.default_model import load_default_model
 from server.settings import Settings
 from server.warmup import model_info
 
@@ -102,7 +101,8 @@ def test_mamba_states_stay_float32_under_autocast():
     batch = torch.repeat_interleave(torch.arange(S), torch.tensor(lengths))  # (T,)
     with torch.no_grad(), torch.autocast(**BF16):
         y, eager = m(x, torch.tensor([0, *lengths]).cumsum(0), state)
-        _, graph = mamba_forward(m, x, stream_segments(batch, torch.ones(T, dtype=torch.bool), S), state)
+        segs = stream_segments(batch, torch.ones(T, dtype=torch.bool), S)
+        _, graph = m(x, Packing.of_segments(segs, m.cfg.d_conv, ScanImpl.AUTO), state)
     assert y.dtype == torch.bfloat16  # autocast ran
     assert graph is not None
     for s in (eager, graph):
@@ -136,7 +136,7 @@ def test_head_maps_are_float32_under_autocast():
 
 
 def test_served_precision_is_reported():
-    settings = Settings(device="cpu", engine="fixed", precision="bf16", zenoh_enabled=False)
+    settings = Settings(device="cpu", engine="graph", precision="bf16", zenoh_enabled=False)
     det, source = build_detector(settings)
     assert det.precision is Precision.BF16
     assert model_info(det, source, "w")["precision"] == "bf16"
@@ -152,10 +152,14 @@ def test_eval_predicts_in_bf16():
     assert_agree(*as_dets, min_boxes=5)
 
 
-def _turn(engine: Engine, precision: Precision, sectors: list[torch.Tensor]):
-    det = streaming_detector(load_default_model("cpu")[0], engine, precision=precision)
+Engines = type[StreamingDetector] | type[GraphStreamingDetector]
+
+
+def _turn(engine: Engines, precision: Precision, sectors: list[torch.Tensor]):
+    """The eager engine, or the fixed-shape step op by op (the graph engine's plain twin)."""
+    det = engine(load_default_model("cpu")[0], precision=precision)
     assert det.precision is precision
-    state = det.init_state()
+    state = det.new_state()
     for s in sectors:
         (result,), (state,) = det.step([s], [state])
     return result.detections, (state if isinstance(det, StreamingDetector) else det.read_state(state))
@@ -184,8 +188,8 @@ def assert_agree(fp32: Detections, bf16: Detections, min_boxes: int = 15) -> Non
 
 
 @pytest.mark.samples
-@pytest.mark.parametrize("engine", [Engine.EAGER, Engine.FIXED])
-def test_bf16_detections_agree_with_fp32_on_kitti(engine: Engine):
+@pytest.mark.parametrize("engine", [StreamingDetector, GraphStreamingDetector], ids=["eager", "fixed-shape"])
+def test_bf16_detections_agree_with_fp32_on_kitti(engine: Engines):
     """A turn and one sector more (the fixed step runs that one's dense part on crops)."""
     sectors = split_turn(kitti_scan(0), tiny().sectors_per_turn)
     sectors += sectors[:1]

@@ -19,8 +19,8 @@ from prometheus_client.parser import text_string_to_metric_families
 from server_helpers import default_detector, sector_msg, serve
 
 from contract import encode_sector
+from model.checkpoint import load_default_model
 from model.stream import StreamingDetector
-from server.default_model import load_default_model
 from server.metrics import Metrics
 
 Families = dict[str, Metric]

@@ -21,7 +21,7 @@ from test_streaming import assert_same_detections
 
 from contract import DetectionsReply, decode_response, encode_sector
 from lidar.sources import scan_source
-from model.checkpoint import init_weights, load_checkpoint, resolve_checkpoint
+from model.checkpoint import init_weights, load_checkpoint, load_default_model, resolve_checkpoint
 from model.config import RefineConfig, tiny
 from model.detector import PHiM
 from model.eval.metrics import iou_matrix
@@ -41,7 +41,6 @@ from model.layers.refine import (
 )
 from model.sectors import split_turn
 from model.stream import StreamingDetector
-from server.default_model import load_default_model
 
 CFG = RefineConfig(points=16)
 
@@ -230,7 +229,7 @@ def shipped():
 def test_the_shipped_refiner_streams_as_the_whole_turn_and_reads_the_buffered_points(shipped):
     sectors = split_turn(kitti_scan(0), shipped.cfg.sectors_per_turn)
     det = StreamingDetector(shipped)
-    state = det.init_state()
+    state = det.new_state()
     for s in sectors:
         (result,), (state,) = det.step([s], [state])
     with torch.inference_mode():

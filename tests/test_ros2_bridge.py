@@ -35,13 +35,14 @@ from contract import (
 from contract.ros2 import (
     Attachment,
 )
-from lidar.pointcloud2 import cloud_spin
 from lidar.samples import KITTI_VELODYNE
 from lidar.sectorizer import StreamSectorizer, split_scan
 from lidar.synthetic import synthetic_turn
-from server import ros2_messages as messages
-from server.ros2_bridge import Ros2Bridge, Ros2Config
-from server.ros2_messages import DETECTION3D_ARRAY, MARKER_ARRAY
+from ros import messages
+from ros.messages import DETECTION3D_ARRAY, MARKER_ARRAY
+from ros.node import Ros2Config
+from ros.pointcloud2 import cloud_spin
+from server.ros2_bridge import Ros2Bridge
 from server.zenoh_transport import ZenohConfig, open_session
 
 WAIT_S = START_TIMEOUT_S  # a guard against hangs, generous; answers come as soon as the forward is done

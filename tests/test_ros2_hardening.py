@@ -13,9 +13,17 @@ from collections.abc import Iterator
 import httpx
 import numpy as np
 import pytest
-from ros2_helpers import pointcloud2_cdr
+from ros2_helpers import assert_boxes, pointcloud2_cdr
 from server_helpers import START_TIMEOUT_S, default_detector, free_endpoint, serve
-from test_ros2_bridge import STAMP_NS, Vehicle, scan_points, sectors_total
+from test_ros2_bridge import (
+    FIELDS,
+    STAMP_NS,
+    Vehicle,
+    cloud_spin,
+    scan_points,
+    sectors_total,
+    split_scan,
+)
 
 from contract import INT64_MAX, MSGPACK, DetectionsReply, SectorMessage, decode_response, encode_sector
 
@@ -124,16 +132,36 @@ def test_a_huge_frame_id_refuses_its_scan(server: tuple[str, str]) -> None:
 
 
 def test_nan_intensities_and_nan_coordinates_follow_one_rule(server: tuple[str, str]) -> None:
+    """Every sector answered, with the boxes of the same scan without those points: each point with a NaN
+    was dropped (not patched, nor its sector refused)."""
     url, endpoint = server
     points = scan_points().copy()
     rng = np.random.default_rng(11)
-    points[rng.choice(len(points), 50, replace=False), 3] = np.nan  # intensity
-    points[rng.choice(len(points), 50, replace=False), 0] = np.nan  # x: a driver's "no return"
+    tenth = len(points) // 10  # enough that patching them instead would change the boxes
+    points[rng.choice(len(points), tenth, replace=False), 3] = np.nan  # intensity
+    points[rng.choice(len(points), tenth, replace=False), 0] = np.nan  # x: a driver's "no return"
+    kept = points[np.isfinite(points).all(axis=1)]  # (N', 4): what the rule leaves
     vehicle = Vehicle(endpoint)
     try:
         vehicle.wait_matched()
+        # the bridge's stream starts cold, as the reference stream below
+        assert httpx.delete(f"{url}/v1/streams/car1", timeout=WAIT_S).status_code in (200, 204, 404)
         ok = sectors_total(url, "ok")
-        assert publish_and_settle(url, vehicle, pointcloud2_cdr(points, stamp_ns=STAMP_NS)) == 4
-        assert sectors_total(url, "ok") == ok + 4  # every sector answered; the bad points dropped
+        vehicle.publish(pointcloud2_cdr(points, stamp_ns=STAMP_NS))
+        arrays = vehicle.take(4)
+        sectors = split_scan(kept, FIELDS, 4, cloud_spin(kept))
+        for seq, (sector, array) in enumerate(zip(sectors, arrays, strict=True)):
+            msg = SectorMessage("nan-ref", seq, sector.index, STAMP_NS, sector.points, FIELDS)
+            r = httpx.post(
+                f"{url}/v1/streams/nan-ref/sectors",
+                content=encode_sector(msg),
+                headers={"Content-Type": MSGPACK},
+                timeout=WAIT_S,
+            )
+            reply = decode_response(r.content)
+            assert isinstance(reply, DetectionsReply), reply
+            assert_boxes(array, reply, atol=1e-4)
+        assert sum(len(a.detections) for a in arrays) > 0  # the comparison compared boxes
+        assert sectors_total(url, "ok") == ok + 4  # the bridge's sectors (the reference came over HTTP)
     finally:
         vehicle.close()

@@ -26,10 +26,10 @@ from clients.connect import ConnectConfig
 from clients.predictions import PredictionRecord, read_predictions
 from clients.replay import ReplayConfig, replay
 from contract import REQUIRED_FIELDS
-from lidar.pointcloud2 import POINTCLOUD2
 from lidar.readers import write_native_scan
-from lidar.recordings import choose_topic, read_recording
 from phim.cli import main as app
+from ros.pointcloud2 import POINTCLOUD2
+from ros.recordings import choose_topic, read_recording
 
 EVERY = 8  # every 8th point of each turn: fast CPU forwards
 WRITERS = {

@@ -1,4 +1,4 @@
-"""The rmw_zenoh wire formats of the ROS 2 bridge (contract/ros2.py, server/ros2_messages.py), against
+"""The rmw_zenoh wire formats of the ROS 2 bridge (contract/ros2.py, ros/messages.py), against
 literals written out here, not built by the code under test: ros2/rmw_zenoh docs/design.md (key expressions,
 tokens, the attachment's bytes, the RIHS01 hash of std_msgs/msg/String) and its liveliness_utils.cpp /
 qos.cpp (the QoS chunk). The bridge itself over real sessions: tests/test_ros2_bridge.py."""
@@ -25,9 +25,9 @@ from contract.ros2 import (
     node_name,
 )
 from lidar.synthetic import synthetic_turn
-from server import ros2_messages as messages
-from server.ros2_bridge import Ros2Config
-from server.ros2_messages import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2, Header
+from ros import messages
+from ros.messages import DETECTION3D_ARRAY, MARKER_ARRAY, POINTCLOUD2, Header
+from ros.node import Ros2Config
 
 WAIT_S = 60.0  # a guard against hangs; answers come as soon as the (CPU) forward is done
 PC2_HASH = "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5"

@@ -61,7 +61,7 @@ def test_concurrent_streams_on_the_fixed_step_equal_the_eager_model():
     det = GraphStreamingDetector(eager.model, slots=4)
     with serve(det, max_batch=4, max_wait_ms=20.0, max_streams=4) as s, ThreadPoolExecutor(2) as pool:
         info = httpx.get(f"{s.url}/v1/model", timeout=10).json()
-        assert (info["engine"], info["sector_voxels"]) == ("fixed", det.sector_voxels)
+        assert (info["engine"], info["sector_voxels"]) == ("graph", det.sector_voxels)
         for seq in range(4):
             futures = {k: pool.submit(post, s.url, k, seq, v[seq]) for k, v in scans.items()}
             for k, f in futures.items():
@@ -104,9 +104,11 @@ def test_a_compiled_server_warms_up_sealed_and_equals_the_eager_model():
 def test_a_graph_engine_batches_at_most_the_largest_bucket():
     with pytest.raises(ValidationError, match="max_batch 64: the graph engine runs 32 at most"):
         Settings(engine="graph", max_batch=64)
-    with pytest.raises(ValidationError, match="max_batch 33: the fixed engine runs 32 at most"):
-        Settings(engine="fixed", max_batch=33)
-    assert Settings(engine="fixed", max_batch=32).max_batch == 32
+    with pytest.raises(ValidationError, match="max_batch 33: the graph engine runs 32 at most"):
+        Settings(engine="graph", max_batch=33)
+    assert Settings(engine="graph", max_batch=32).max_batch == 32
+    with pytest.raises(ValidationError, match="engine"):  # the uncompiled step is no engine of its own
+        Settings(engine="fixed")
     assert Settings(engine="eager", max_batch=64).max_batch == 64
 
 
@@ -150,7 +152,7 @@ def test_a_sector_too_big_for_its_slot_fails_alone_and_its_stream_goes_on():
         assert batches(s.url) == (before[0] + 1, before[1] + 2)  # the two ran in one batch
         assert isinstance(err, ErrorReply) and (err.code, err.field) == (ErrorCode.INVALID_FIELD, "points")
         assert re.fullmatch(
-            r"points: a sector of \d+ voxels; the fixed engine buffers at most 256 voxels per sector "
+            r"points: a sector of \d+ voxels; the graph engine buffers at most 256 voxels per sector "
             r"\(sector_voxels\): raise it \(phim serve --sector-voxels, PHIM_SECTOR_VOXELS\) or send fewer "
             r"points \(seq 1 not run\)",
             err.message,
@@ -227,9 +229,10 @@ def test_the_scheduler_runs_a_full_bucket_at_once_and_waits_when_one_just_misses
 
 
 def test_phim_serve_sizes_the_slots_by_max_streams():
-    with serve(None, engine="fixed", max_streams=3, sector_voxels=512) as s:
+    # no warm-up: it would compile the graph (the test is about building it from the settings)
+    with serve(None, engine="graph", max_streams=3, sector_voxels=512, warmup_sectors=0) as s:
         info = httpx.get(f"{s.url}/v1/model", timeout=10).json()
-        assert (info["engine"], info["state_slots"], info["sector_voxels"]) == ("fixed", 3, 512)
+        assert (info["engine"], info["state_slots"], info["sector_voxels"]) == ("graph", 3, 512)
         assert info["slot_bytes"] > 0
 
 

@@ -51,7 +51,7 @@ def assert_same_detections(a: Detections, b: Detections, atol: float = 1e-4) -> 
 
 
 def stream(det: StreamingDetector, sectors: list[torch.Tensor]):
-    state = det.init_state()
+    state = det.new_state()
     results = []
     for s in sectors:
         (r,), (state,) = det.step([s], [state])
@@ -111,7 +111,7 @@ def test_batched_equals_alone_in_any_order(model: PHiM):
     sectors = [split_turn(t, model.cfg.sectors_per_turn) for t in turns]
     alone = [stream(det, s)[0] for s in sectors]
     for order in ([0, 1, 2], [2, 0, 1]):
-        states = [det.init_state() for _ in order]
+        states = [det.new_state() for _ in order]
         for k in range(model.cfg.sectors_per_turn):
             results, states = det.step([sectors[i][k] for i in order], states)
             for r, i in zip(results, order, strict=True):
@@ -137,7 +137,7 @@ def test_bad_points_raise_and_leave_states_alone(model: PHiM):
     bad = sectors[2].clone()
     bad[5, 0] = float("nan")
     with pytest.raises(PointsError, match="points"):
-        det.step([sectors[2], bad], [state, det.init_state()])
+        det.step([sectors[2], bad], [state, det.new_state()])
     with pytest.raises(PointsError, match="float32"):
         det.step([sectors[2].double()], [state])
     # The state object is immutable and still valid: continuing gives the uninterrupted result.
@@ -151,7 +151,7 @@ def test_reset_starts_fresh(model: PHiM):
     sectors = split_turn(kitti_scan(1), 4)
     _, state = stream(det, sectors)
     (after_reset,), _ = det.step([sectors[0]], [det.reset(state)])
-    (fresh,), _ = det.step([sectors[0]], [det.init_state()])
+    (fresh,), _ = det.step([sectors[0]], [det.new_state()])
     assert after_reset.context_sectors == 1
     assert_same_detections(after_reset.detections, fresh.detections)
 

@@ -322,7 +322,7 @@ def test_the_heap_alive_after_the_warm_up_is_frozen(det):
 
 WARM_NMS = """
 from model.checkpoint import resolve_checkpoint
-from model.geometry.nms_cpu import _class_nms_batch, _greedy
+from model.ops.nms_numba import _class_nms_batch, _greedy
 from model.stream import StreamingDetector
 from server.warmup import warm_up
 

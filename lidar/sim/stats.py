@@ -51,16 +51,18 @@ GROUP_SPACING_M = 0.85
 # 20 pedestrians. The default count ranges (SceneConfig) bracket these.
 
 # Vehicle body types (vehicles.py). The data sets label one VEHICLE class, so the per-type sizes come from
-# public class means where a data set has the type, and typical dimensions of the segment otherwise; widths
-# include the mirrors, as label boxes do (nuScenes' car mean is 1.97 m wide, wider than most bodies):
+# public class means where a data set has the type, and typical dimensions of the segment otherwise. Widths
+# are label widths, which leave the side mirrors out (nuScenes' annotator instructions: "Do not include
+# vehicle side view mirrors"): the body fills the label box (short of an annotation margin that keeps its
+# noisy returns inside), the mirrors stand out of it (vehicles.py):
 # - nuScenes class means (the anchor sizes of the public nuScenes detection configs, computed from the
 #   train split): car 4.63 x 1.97 x 1.74, truck 6.93 x 2.51 x 2.84, bus 10.5 x 2.94 x 3.47, trailer
 #   12.29 x 2.90 x 3.87, bicycle 1.70 x 0.60 x 1.28, motorcycle 2.11 x 0.77 x 1.47, pedestrian 0.73 x 0.67 x
 #   1.77; Waymo class means (the same configs): vehicle 4.73 x 2.08 x 1.77, pedestrian 0.91 x 0.84 x 1.74,
 #   cyclist 1.81 x 0.84 x 1.77; KITTI Van 5.03 x 1.87 x 2.21.
 # - sedan, hatchback, SUV and pickup: typical European / US dimensions of the segment (bodies 4.7-4.9,
-#   3.9-4.3, 4.4-4.9 and 5.3-5.9 m long), mirrors added; the mix below gives a car mean of 4.71 x 2.00 x
-#   1.68, between nuScenes' and Waymo's.
+#   3.9-4.3, 4.4-4.9 and 5.3-5.9 m long), widths held to the public label means; the mix below gives a car
+#   mean of 4.71 x 2.00 x 1.68, between nuScenes' and Waymo's.
 SEDAN, HATCHBACK, SUV, PICKUP, VAN, BOX_TRUCK, BUS, TRAILER = range(8)
 BODY_NAMES = ("sedan", "hatchback", "suv", "pickup", "van", "box_truck", "bus", "trailer")
 BODY_SIZES = (

@@ -3,9 +3,13 @@ truck, bus, semi-trailer), each composed of boxes and discs (docs/simulator.md).
 
 A car: wheels (discs) in wheel arches, a lower body from the ground clearance to the bonnet, a bonnet lower
 than the waist, a glass cabin (mostly see-through: `GLASS_POROSITY`) with pillars, seats behind the glass and
-an opaque roof, a raked windscreen and rear window, mirrors that reach the label box's sides, a narrower nose
-and tail, and retroreflective tail lights at the back corners. The label box is tight: bumpers, mirrors,
-roof and tyres touch its faces.
+an opaque roof, a raked windscreen and rear window, mirrors, a narrower nose and tail, and retroreflective
+tail lights at the back corners. The label box is drawn as annotators draw it: tight around the body and
+enclosing its returns, range noise included (`ANNOTATION_MARGIN` beyond the bumpers, body sides and roof;
+the tyres stand on its bottom), with the side mirrors standing out of its sides (annotation guides leave
+them out: nuScenes' annotator instructions, "Do not include vehicle side view mirrors"). A body whose faces
+were the label's would leave half its face returns outside the label, and a label around the mirrors would
+teach boxes a mirror's width wider than real labels.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ TYRE_REFL = (0.03, 0.08)
 NOSE = 0.12  # metres: the rounded nose and tail, at NOSE_WIDTH of the body's width
 NOSE_WIDTH = 0.9
 BANDS = 3  # the cabin as this many glass slices, each set back by the windscreen's and rear window's rake
+ANNOTATION_MARGIN = 0.04  # metres from the body's front, back, sides and top to the label's faces
 
 # Per car body (stats.SEDAN .. stats.VAN): ranges drawn uniformly per car. wheel: radius (m); clear: ground
 # clearance (m); front, rear: axle from the bumper (share of the length); belt: the window sill (share of the
@@ -59,8 +64,20 @@ def body_kinds(rng: np.random.Generator, large: np.ndarray, trailers: bool = Tru
     return np.where(large, big, car)
 
 
+def body_boxes(boxes: np.ndarray) -> np.ndarray:
+    """(K, 7) label boxes -> (K, 7) the boxes the bodies fill: `ANNOTATION_MARGIN` inside every face but the
+    bottom."""
+    inner = np.array(boxes, np.float64)
+    inner[:, 3:5] -= 2 * ANNOTATION_MARGIN
+    inner[:, 5] -= ANNOTATION_MARGIN
+    inner[:, 2] -= ANNOTATION_MARGIN / 2
+    return inner
+
+
 def vehicle_solids(solids: SolidList, rng: np.random.Generator, boxes: np.ndarray, kind: np.ndarray) -> None:
-    """Every vehicle of `boxes` (K, 7) as its body type `kind` (K,) says."""
+    """Every vehicle of the label boxes `boxes` (K, 7) as its body type `kind` (K,) says, inside its
+    `body_boxes`."""
+    boxes = body_boxes(boxes)
     paint = rng.choice(PAINT, len(boxes)) * rng.uniform(0.8, 1.2, len(boxes))
     car = kind <= stats.VAN
     _cars(solids, rng, boxes[car], kind[car], paint[car])
@@ -112,8 +129,8 @@ def _cars(
     base, length, w, h, _ = parts(b)
     d = {name: _draw(rng, kind, name) for name in CAR_SHAPE}
     half, top = length / 2, base + h
-    mirror = rng.uniform(0.08, 0.12, k)
-    wb = w - 2 * mirror  # the body's width
+    mirror = rng.uniform(0.08, 0.12, k)  # beyond the body's sides
+    wb = w  # the body's width
     r, clear = np.minimum(d["wheel"], 0.3 * h), base + d["clear"]
     af, ar = half - d["front"] * length, -half + d["rear"] * length  # axles
     ra = r + 0.05  # wheel arch
@@ -146,7 +163,7 @@ def _cars(
     segment(solids, b, (ws, waist_end), (hood, belt), wb, paint)  # from the windscreen back, to the sill
     _bed(solids, b[pickup], (ce - 0.1)[pickup], floor[pickup], belt[pickup], wb[pickup], paint[pickup])
     _cabin(solids, rng, b, (ws, d["rake"], ce, d["rear_rake"]), (belt, top), wb, paint, d["panel"])
-    for side in (-1.0, 1.0):  # mirrors reach the label box's sides
+    for side in (-1.0, 1.0):  # mirrors stand out of the body's (and the label box's) sides
         segment(
             solids,
             b,
@@ -239,8 +256,8 @@ def _box_truck(solids: SolidList, rng: np.random.Generator, b: np.ndarray, paint
     k = len(b)
     base, length, w, h, _ = parts(b)
     half, tail = length / 2, -length / 2 + LIGHT_DEPTH
-    mirror = rng.uniform(0.12, 0.2, k)
-    wb = w - 2 * mirror
+    mirror = rng.uniform(0.12, 0.2, k)  # beyond the body's sides
+    wb = w
     r = rng.uniform(0.45, 0.52, k)
     cab_end = half - np.minimum(2.3, 0.3 * length)
     cab_top = base + np.maximum(h * rng.uniform(0.7, 0.85, k), 2.2)
@@ -274,8 +291,8 @@ def _bus(solids: SolidList, rng: np.random.Generator, b: np.ndarray, paint: np.n
     k = len(b)
     base, length, w, h, _ = parts(b)
     half, tail = length / 2, -length / 2 + LIGHT_DEPTH
-    mirror = rng.uniform(0.12, 0.18, k)
-    wb = w - 2 * mirror
+    mirror = rng.uniform(0.12, 0.18, k)  # beyond the body's sides
+    wb = w
     r = rng.uniform(0.48, 0.52, k)
     af, ar = half - 2.6, -half + 3.1
     ra, clear = r + 0.06, base + 0.3

@@ -232,11 +232,24 @@ def _print_more(metrics: dict) -> None:
 @device_option()
 @click.option(
     "--by",
-    type=click.Choice(["class", "points", "range"]),
+    type=click.Choice(["class", "points", "range", "group"]),
     default="class",
     show_default=True,
-    help="Group by class, or by class and the points inside the box, or by class and range.",
+    help="Group by class, or by class and the points inside the box, or by class and range; --matched: by "
+    "class, or (group) by class and samples subfolder.",
 )
+@click.option(
+    "--matched",
+    is_flag=True,
+    help="Instead: the boxes a user gets (refiner included) matched to labels at BEV IoU 0.5, score >= 0.5: "
+    "size bias (predicted - labelled) and heading flips, seen side-on and end-on.",
+)
+@click.option(
+    "--rescore",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="--matched: read the boxes from a predictions .npz (phim eval --predictions) instead of a model.",
+)
+@refiner_option
 def diagnose_cmd(
     checkpoint: str,
     data: str,
@@ -246,14 +259,23 @@ def diagnose_cmd(
     as_json: bool,
     device: str,
     by: str,
+    matched: bool,
+    rescore: Path | None,
+    refiner: bool,
 ) -> None:
-    """Each part of the predicted boxes against the truth, read at the true centre cells, per class."""
+    """Each part of the predicted boxes against the truth, read at the true centre cells, per class; with
+    --matched, the size bias and heading flips of the returned boxes that match a label."""
     from model.checkpoint import resolve_checkpoint
     from model.device import pick_device
     from model.eval.diagnose import Breakdown, diagnose, format_diagnosis
 
+    if (by == "group") != (matched and by != "class") or (rescore is not None and not matched):
+        raise click.UsageError("--by group and --rescore go with --matched; --by points / range without it")
     source = _source(data, seed, class_map)
     count = min(scans, len(source))
+    if matched:
+        _diagnose_matched(checkpoint, data, source, count, as_json, device, by == "group", rescore, refiner)
+        return
     model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
     result = diagnose(model, range(count), source, by=Breakdown(by))
     if as_json:
@@ -261,3 +283,38 @@ def diagnose_cmd(
         return
     click.echo(f"checkpoint {ckpt_path}, data {data}, {count} scans")
     click.echo(format_diagnosis(result))
+
+
+def _diagnose_matched(
+    checkpoint: str,
+    data: str,
+    source: SimSource | FileSource,
+    count: int,
+    as_json: bool,
+    device: str,
+    by_group: bool,
+    rescore: Path | None,
+    refiner: bool,
+) -> None:
+    """`phim diagnose --matched`: the full-turn boxes as `phim eval` scores them, matched to the labels."""
+    from model.checkpoint import resolve_checkpoint
+    from model.device import pick_device
+    from model.eval.box_bias import box_bias, format_box_bias
+    from model.eval.prediction_files import read_predictions_by_fill
+    from model.eval.runner import run_eval, run_rescore, within_range
+
+    if rescore is not None:
+        what = f"predictions {rescore}"
+        results = run_rescore(read_predictions_by_fill(rescore), range(count), source)
+    else:
+        model, ckpt_path = resolve_checkpoint(checkpoint, pick_device(device))
+        if not refiner:
+            model.drop_refiner()
+        what = f"checkpoint {ckpt_path}{'' if refiner else ' (no refiner)'}"
+        results = run_eval(model, range(count), source)
+    result = box_bias([within_range(r, 75.0) for r in results], by_group=by_group)
+    if as_json:
+        click.echo(json.dumps(result, indent=2))
+        return
+    click.echo(f"{what}, data {data}, {count} scans")
+    click.echo(format_box_bias(result))

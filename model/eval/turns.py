@@ -23,7 +23,7 @@ def stream_turns(det: StreamingDetector, scan: LabeledScan, turns: int) -> list[
     last sector (the full-turn prediction: it sees the new sector and the S - 1 buffered ones)."""
     n = det.cfg.sectors_per_turn
     sectors = scan_sectors(scan, det.cfg.vfe.point_features, n)
-    state, out = det.init_state(), []
+    state, out = det.new_state(), []
     for _ in range(turns):
         for s in sectors:
             (r,), (state,) = det.step([s], [state])

@@ -65,7 +65,7 @@ class Tally:
         }
 
 
-def _iou_bev(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def iou_bev(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(A, 7), (B, 7) boxes -> (A, B) rotated BEV IoU."""
     if len(a) == 0 or len(b) == 0:
         return np.zeros((len(a), len(b)), np.float64)
@@ -92,9 +92,9 @@ def check_scan(r: ScanResult, cfg: VehicleCheckConfig) -> Tally:
         & (truth.num_points >= cfg.min_points)
         & (np.hypot(gt[:, 0], gt[:, 1]) <= cfg.max_range)
     )  # (M,)
-    iou = _iou_bev(gt, boxes)  # (M, K)
+    iou = iou_bev(gt, boxes)  # (M, K)
     found = (iou >= cfg.iou).any(axis=1) & wanted  # (M,)
-    below = (_iou_bev(gt, lower) >= cfg.iou).any(axis=1) & wanted & ~found  # (M,)
+    below = (iou_bev(gt, lower) >= cfg.iou).any(axis=1) & wanted & ~found  # (M,)
     false = int((_covered(gt, boxes, iou) <= cfg.false_overlap).all(axis=0).sum())
     return Tally(1, int(wanted.sum()), int(found.sum()), int(below.sum()), false)
 

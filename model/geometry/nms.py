@@ -15,7 +15,8 @@ import torch
 from torch import Tensor
 
 from model.geometry.boxes import iou_bev_upper_bound, near_pairs, rotated_iou_bev_aligned
-from model.geometry.nms_cpu import grouped_nms_cpu
+from model.ops.nms_numba import grouped_nms_cpu
+from model.ops.numba_support import numba_kernel
 
 _BOUND_SLACK = 1e-4  # pairs within this of the threshold by the upper bound get the exact IoU
 _PREFIX = 2  # first try NMS on the best _PREFIX x max_out candidates only
@@ -82,10 +83,12 @@ def nms_rotated(boxes: Tensor, scores: Tensor, iou_threshold: float, max_out: in
     return _grouped_nms(boxes, scores, thresholds, torch.zeros(n, dtype=torch.int64, device=dev), max_out)
 
 
-def _grouped_nms(boxes: Tensor, scores: Tensor, thresholds: Tensor, groups: Tensor, max_out: int) -> Tensor:
-    """Greedy NMS in which boxes only suppress boxes of their own group: on CPU tensors the numba kernel
-    (`model.geometry.nms_cpu`), elsewhere `_grouped_nms_torch`, its reference twin."""
-    if boxes.device.type == "cpu":
+def _grouped_nms(
+    boxes: Tensor, scores: Tensor, thresholds: Tensor, groups: Tensor, max_out: int, fast: bool | None = None
+) -> Tensor:
+    """Greedy NMS in which boxes only suppress boxes of their own group: the numba kernel
+    (`model.ops.nms_numba`) or `_grouped_nms_torch`, its reference twin, as `fast` says (`numba_kernel`)."""
+    if numba_kernel("grouped_nms", boxes.device, fast):
         return grouped_nms_cpu(boxes.detach(), scores.detach(), thresholds, groups, max_out)
     return _grouped_nms_torch(boxes, scores, thresholds, groups, max_out)
 

@@ -77,7 +77,7 @@ class Rulebook:
         return int(self.in_idx.shape[0])
 
 
-def _key_strides(shape: tuple[int, int, int]) -> tuple[int, int, int, int]:
+def key_strides(shape: tuple[int, int, int]) -> tuple[int, int, int, int]:
     """Key increment per unit step of each coordinate column (batch, r, theta, z), see `linear_key`."""
     n_r, n_t, n_z = shape
     return n_t * n_r * n_z, n_z, n_r * n_z, 1
@@ -109,7 +109,7 @@ def _pair_ptr(valid: Tensor) -> tuple[int, ...]:
     return (0, *counts.tolist())
 
 
-def _decode_keys(keys: Tensor, shape: tuple[int, int, int]) -> Tensor:
+def keys_to_coords(keys: Tensor, shape: tuple[int, int, int]) -> Tensor:
     """(M,) linear keys -> (M, 4) coords (batch, r, theta, z); inverse of `linear_key`."""
     n_r, n_t, n_z = shape
     z = keys % n_z
@@ -140,7 +140,7 @@ def build_strided_rulebook(
         valid.append((q >= 0) & (q % s == 0) & (q < out_shape[ax - 1] * s))
     ok = (valid[0].unsqueeze(1) & valid[1].unsqueeze(0)).view(k0 * k1, n)  # (K0 K1, N)
     kk, site = ok.nonzero().unbind(1)  # (P,), (P,) grouped by kk
-    st = _key_strides(out_shape)
+    st = key_strides(out_shape)
     (a0, a1), fold = plane.axes, plane.fold_axis
     base = coords[:, BATCH] * st[BATCH] + coords[:, fold] * st[fold]  # (N,) key with plane axes at 0
     o0 = out_pos[0].view(-1).index_select(0, torch.div(kk, k1, rounding_mode="floor") * n + site)  # (P,)
@@ -151,7 +151,7 @@ def build_strided_rulebook(
     is_new[1:] = sorted_keys[1:] != sorted_keys[:-1]
     group = is_new.cumsum(0) - 1  # (P,) output row of each sorted candidate
     out_idx = torch.empty_like(perm).scatter_(0, perm, group)
-    out_coords = _decode_keys(sorted_keys[is_new], out_shape)
+    out_coords = keys_to_coords(sorted_keys[is_new], out_shape)
     return Rulebook(
         site, out_idx, _pair_ptr(ok), kernel, plane, coords, shape, out_coords, out_shape, batch_size
     )
@@ -165,7 +165,7 @@ def _neighbour_keys(
     keys (N,) and coords (N, 4) in the same row order; row k = (k0, k1) is the neighbour at offset k - p.
     """
     n, dev = coords.shape[0], coords.device
-    st = _key_strides(shape)
+    st = key_strides(shape)
     (a0, a1), (k0, k1) = plane.axes, kernel
     d0 = torch.arange(k0, device=dev) - k0 // 2  # (K0,) offset k - p on the first axis
     d1 = torch.arange(k1, device=dev) - k1 // 2  # (K1,) on the second axis

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
 from torch import Tensor
 
 BATCH, R, THETA, Z = 0, 1, 2, 3  # columns of SparseTensor.coords
+SENTINEL: int = 2**62  # the linear key of a padding row (fixed-capacity sites): sorts after every real key
 
 
 @dataclass(frozen=True)
@@ -53,14 +53,3 @@ def to_dense(x: SparseTensor) -> Tensor:
     b, r, t, z = x.coords.unbind(1)
     out[b, :, r, t, z] = x.features
     return out
-
-
-def empty_like_grid(
-    channels: int, spatial_shape: tuple[int, int, int], batch_size: int, device: torch.device
-):
-    return SparseTensor(
-        torch.zeros(0, channels, device=device),
-        torch.zeros(0, 4, dtype=torch.int64, device=device),
-        spatial_shape,
-        batch_size,
-    )

@@ -1,4 +1,4 @@
-"""`GraphStreamingDetector`: the streaming API of `model.stream.StreamingDetector` over the fixed-shape step.
+"""`GraphStreamingDetector`: the graph engine (`model.engine`'s interface) over the fixed-shape step.
 
 Stream states live on the device in preallocated slots (`model.graph.slots.StateSlots`); a state is a small
 handle (`SlotState`). The host picks the batch's buckets (`model.graph.buckets`), pads the batch on the
@@ -6,9 +6,10 @@ device (only the sectors' own rows are copied there), gathers the batch's state 
 (compiled with torch.compile where asked), copies one flat tensor back (candidates, stats, site counts),
 re-runs the step with larger capacities if any sites did not fit, runs NMS on the candidates and, only
 then, writes the new state rows back: a failed step changes no slot. A compiled detector, once sealed after
-its warm-up, runs op by op whatever bucket it did not compile. Once a batch's streams have each run a
-turn, the step's dense part runs on crops around their new sectors (`model.graph.bev_crop`; checked by the
-wedge the step reports, else the batch runs again on the whole map). A sector with more voxels than
+its warm-up, runs op by op whatever bucket it did not compile; built with `compile=False` it always runs op
+by op (the compiled step's plain twin, for tests and tools). Once a batch's streams have each run a turn,
+the step's dense part runs on crops around their new sectors (`model.graph.bev_crop`; checked by the wedge
+the step reports, else the batch runs again on the whole map). A sector with more voxels than
 `sector_voxels` fails alone (`SectorRejected`): the batch's other streams get their results and new
 states, its stream keeps its state.
 """
@@ -16,43 +17,45 @@ states, its stream keeps its state.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import torch
 from torch import Tensor
 
 from model.config import Engine, Precision
 from model.detector import PHiM
-from model.ego import drop_ego_boxes, drop_ego_points
+from model.engine_base import (
+    EngineBase,
+    EngineInfo,
+    SectorOutcome,
+    SectorRejected,
+    SectorResult,
+    StatesExhausted,
+)
 from model.geometry.boxes import Detections
 from model.graph.bev_crop import EMPTY
-from model.graph.buckets import CapacityPlanner, batch_bucket, row_bucket
-from model.graph.slots import GraphStreamState, SlotState, StateSlots, StepStates, from_stream_state
+from model.graph.buckets import BATCH_BUCKETS, CapacityPlanner, batch_bucket, row_bucket
+from model.graph.slots import (
+    GraphStreamState,
+    SlotsExhausted,
+    SlotState,
+    StateSlots,
+    StepStates,
+    from_stream_state,
+)
 from model.graph.step import STATS, Capacity, GraphStep
 from model.layers.head import Candidates, select_detections
 from model.layers.refine import refine_streams
 from model.precision import autocast
-from model.stream import SectorResult, StreamingDetector, StreamState
+from model.stream import StreamingDetector, StreamState
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GraphStreamState", "GraphStreamingDetector", "SectorRejected", "SlotState", "from_stream_state"]
+__all__ = ["GraphStreamState", "GraphStreamingDetector", "SlotState", "from_stream_state"]
 DEFAULT_SLOTS = 32  # stream-state slots of a detector built without a count (the largest batch bucket)
 
 
-@dataclass(frozen=True)
-class SectorRejected:
-    """A sector its stream could not run (the batch's other streams ran); the stream's state is unchanged."""
-
-    field: str  # the sector message's field at fault
-    message: str  # what was wrong and what is expected
-    voxels: int  # the sector's voxels
-
-
-SectorOutcome = SectorResult | SectorRejected
-
-
-class GraphStreamingDetector:
+class GraphStreamingDetector(EngineBase):
     """`step(points, states)` as StreamingDetector's, on the fixed-shape step, for at most `slots` streams
     at once, each buffering `sector_voxels` voxel rows per sector (0: the config's); `compile` runs it
     through torch.compile(fullgraph=True), one specialisation per (batch, capacity) bucket; the step runs
@@ -68,7 +71,7 @@ class GraphStreamingDetector:
         sector_points: int = 0,
         bev_crop: bool = True,
     ):
-        # folds the batchnorms, checks the precision; validation and initial states
+        # folds the batchnorms, checks the precision; the initial state
         self.reference = StreamingDetector(model, precision=precision)
         self.precision = precision
         self.model = self.reference.model
@@ -76,7 +79,8 @@ class GraphStreamingDetector:
         sector_voxels = sector_voxels or model.cfg.sector_voxels  # 0: the config's
         self.step_module = GraphStep(self.model, sector_voxels)
         self.planner = CapacityPlanner(len(self.step_module.keys))
-        self.engine = Engine.GRAPH if compile else Engine.FIXED
+        self.engine = Engine.GRAPH
+        self.compiled = compile  # False: the step runs op by op (the compiled step's plain twin)
         # every sector pads to at least this many points' bucket, so that sectors of any size up to it share
         # one capacity bucket per batch bucket (the one a server compiles at warm-up); 0: the bucket of the
         # batch's largest sector
@@ -87,7 +91,7 @@ class GraphStreamingDetector:
         self.bev_crop = bev_crop and self.step_module.crop is not None
         self.crop_misses = 0
         self.map_shape = (self.cfg.bev.ny, self.cfg.bev.nx, self.step_module.map_channels)
-        blank = self._graph_state(self.reference.init_state(), sector_voxels)
+        blank = self._graph_state(self.reference.new_state(), sector_voxels)
         self.slots = StateSlots(blank, slots)
         self._sealed = False  # see seal()
         self._compiled: set[tuple[int, Capacity]] = set()  # buckets the compiled step has run
@@ -131,7 +135,7 @@ class GraphStreamingDetector:
         fit them runs op by op at capacities that hold it (logged). Ratios learned before are forgotten."""
         self.planner = CapacityPlanner(len(self.step_module.keys))
         run, self._run = self._run, self.step_module
-        state = taken = self.init_state()
+        state = taken = self.new_state()
         try:
             for s in sectors:
                 _, (state,) = self.step([s], [state])
@@ -139,19 +143,17 @@ class GraphStreamingDetector:
             self._run = run
             self.release(taken)
         self.planner.ratios = [r * headroom for r in self.planner.ratios]
-        self.planner.frozen = self.engine is Engine.GRAPH
+        self.planner.frozen = self.compiled
 
-    def validate(self, points: Tensor) -> None:
-        self.reference.validate(points)
+    def new_state(self) -> SlotState:
+        """A fresh state in a free slot (StatesExhausted when none is free); `release` gives it back."""
+        try:
+            return self.slots.acquire()
+        except SlotsExhausted as e:
+            raise StatesExhausted(str(e)) from None
 
-    def init_state(self) -> SlotState:
-        """A fresh state in a free slot (SlotsExhausted when none is free); `release` gives it back."""
-        return self.slots.acquire()
-
-    def reset(self, state: SlotState | None = None) -> SlotState:
-        """A fresh state: in `state`'s slot (nothing is written), or in a free slot."""
-        if state is None:
-            return self.init_state()
+    def reset(self, state: SlotState) -> SlotState:
+        """A fresh state in `state`'s slot: nothing is written before a step succeeds."""
         self.slots.check([state])
         return state.fresh()
 
@@ -166,24 +168,49 @@ class GraphStreamingDetector:
         """An eager state, written into a free slot; ValueError (and no slot taken) if a buffered sector has
         more than `sector_voxels` voxels."""
         tensors = self._graph_state(state, self.sector_voxels)  # first: a ValueError takes no slot
-        return replace(self.slots.write(self.init_state(), tensors), points=state.points)
+        return replace(self.slots.write(self.new_state(), tensors), points=state.points)
 
     def _graph_state(self, state: StreamState, sector_voxels: int) -> GraphStreamState:
         d = self.model.backbone.cfg.d_model
         return from_stream_state(state, self.cfg.buffer_sectors, sector_voxels, d, self.map_shape)
 
-    @torch.inference_mode()
-    def step(
+    def describe(self) -> EngineInfo:
+        return self._info(
+            sector_voxels=self.sector_voxels,
+            sector_points=self.sector_points,
+            bev_crop=self.bev_crop,
+            state_slots=self.slots.count,
+            slot_bytes=self.slots.slot_bytes,
+            slot_memory_mb=round(self.slots.total_bytes / 2**20, 1),
+            batch_buckets=BATCH_BUCKETS,
+        )
+
+    def warm_up(self, sectors: int, max_batch: int = 1, headroom: float = 1.0) -> float:
+        """Before a server is ready: the CPU NMS kernels compiled; then, if `sectors` > 0, the capacities
+        learned from a synthetic turn (times `headroom`: real scans have more sites per point), a batch of
+        fresh streams run for every bucket up to `max_batch`, on the whole map and on crops (a compiled engine
+        compiles them here), `sectors` single-stream steps on one slot (given back), and the engine sealed:
+        no compiling after the warm-up. The mean seconds of one step (0.1 if none ran)."""
+        turn = self._warm_up_turn(sectors)
+        if turn is None:
+            return 0.1
+        self.calibrate(turn, headroom)
+        crops = [False, True] if self.bev_crop else [False]
+        for b in (b for b in BATCH_BUCKETS if b <= batch_bucket(max_batch)):
+            for crop in crops:  # the whole map (a stream's first turn), and crops (every sector after it)
+                self.run_fresh([turn[i % len(turn)] for i in range(b)], crop)
+        taken = self.new_state()
+        try:
+            return self._timed_steps(turn, sectors, taken, None)
+        finally:
+            self.release(taken)
+            self.seal()  # a bucket not compiled by now runs op by op: no compile while serving
+
+    def _step(
         self, points: list[Tensor], states: list[SlotState]
     ) -> tuple[list[SectorOutcome], list[SlotState]]:
-        """One sector per stream: points[i] (N_i, C) float32 goes with states[i]. Per stream: its result and
-        new state, or SectorRejected and its state as it was. As the eager step, without the ego vehicle's
-        points and boxes (`cfg.ego`)."""
-        if len(points) != len(states):
-            raise ValueError(f"{len(points)} sectors but {len(states)} states")
-        for p in points:
-            self.validate(p)
-        points = drop_ego_points(points, self.cfg.ego)
+        """Per stream: its result and new state, or SectorRejected and its state as it was (the batch
+        checked, the ego vehicle's points dropped: `EngineBase.step`)."""
         self.slots.check(states)
         n = len(points)
         wedges = self._crop_wedges(states)
@@ -256,14 +283,14 @@ class GraphStreamingDetector:
     def run_fresh(self, points: list[Tensor], crop: bool = False) -> list[SectorOutcome]:
         """The step for len(points) fresh streams padded to their bucket, on the whole map or (`crop`, where
         the detector runs crops) on crops, writing no slot (warm-up compiles a bucket with it)."""
-        for p in points:
-            self.validate(p)
-        points = drop_ego_points(points, self.cfg.ego)
+        return self._without_ego(points, lambda kept: (self._run_fresh(kept, crop), []))[0]
+
+    def _run_fresh(self, points: list[Tensor], crop: bool) -> list[SectorOutcome]:
         fresh = [SlotState(self.slots.blank_row, 0, self.slots.keep, 0)] * len(points)  # reads the blank row
         wedges = [0] * len(points) if crop and self.bev_crop else None
         inputs = self.inputs(points, fresh, batch_bucket(len(points)), wedges)
         cand, stats, _ = self._forward(points, inputs, wedges is not None)
-        return self._results(cand, stats[: len(points)], fresh, points)[0]
+        return list(self._results(cand, stats[: len(points)], fresh, points)[0])
 
     def inputs(
         self,
@@ -361,40 +388,19 @@ class GraphStreamingDetector:
         self, cand: Tensor, stats: Tensor, states: list[SlotState], points: list[Tensor]
     ) -> tuple[list[SectorResult], list[tuple[Tensor, ...]]]:
         """cand (n, K, 10), stats (n, 3) on the host, the sectors' points -> each stream's detections after
-        NMS (and the box refiner), and the points each stream buffers for the refiner."""
+        NMS (and the box refiner; `EngineBase` drops the ego vehicle's boxes), and the points each stream
+        buffers for the refiner."""
         c = Candidates(cand[..., :7], cand[..., 7], cand[..., 8].long(), cand[..., 9])
         dets: list[Detections] = select_detections(c, self.cfg.head)
         dets, buffers = refine_streams(
             self.model.refiner, dets, [s.points for s in states], points, self.cfg.buffer_sectors
         )
-        dets = [drop_ego_boxes(d, self.cfg.ego) for d in dets]
         kept, out_of_range = STATS.index("points_kept"), STATS.index("points_out_of_range")
         results = [
             SectorResult(d, s.buffered_sectors + 1, int(st[kept]), int(st[out_of_range]))
             for d, s, st in zip(dets, states, stats, strict=True)
         ]
         return results, buffers
-
-
-def streaming_detector(
-    model: PHiM,
-    engine: Engine,
-    sector_voxels: int = 0,
-    slots: int = DEFAULT_SLOTS,
-    precision: Precision = Precision.FP32,
-    sector_points: int = 0,
-    bev_crop: bool = True,
-) -> Detector:
-    """The detector that runs `model` with `engine` in `precision` (a fixed-shape one with `slots`
-    stream-state slots, planned for sectors of at least `sector_points` points, its dense part on crops
-    where `bev_crop`)."""
-    if engine is Engine.EAGER:
-        return StreamingDetector(model, precision=precision)
-    compile = engine is Engine.GRAPH
-    return GraphStreamingDetector(model, sector_voxels, compile, slots, precision, sector_points, bev_crop)
-
-
-Detector = StreamingDetector | GraphStreamingDetector  # what the server runs
 
 
 def _live_module_tree(entries: list) -> list[bool]:

@@ -1,4 +1,4 @@
-"""Fixed-length packs cut into segments, described by per-token flags instead of cu_seqlens.
+"""The fixed-shape step's segmented packs (`model.ops.segments.Segments`): frustums and streams.
 
 A pack has T tokens (its bucket size): real tokens first, in segment order, then padding. A segment is a
 run of consecutive real tokens with the same key (frustum, stream); every padding token is a segment of its
@@ -7,36 +7,11 @@ own, so padding never feeds into a real token. All builders use only fixed-shape
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 
 from model.geometry.sparse_tensor import BATCH, THETA
-
-
-@dataclass(frozen=True)
-class Segments:
-    """T tokens of a fixed-length pack cut into segments (sequences). Padding tokens are each a segment of
-    their own."""
-
-    start: Tensor  # (T,) bool: the token starts a segment (every padding token is a start)
-    valid: Tensor  # (T,) bool: a real token
-    seg: Tensor  # (T,) int64: stream whose state a token's segment continues, in [0, S) (any for padding)
-    last: Tensor  # (S,) int64: index of the last token of stream s's segment, -1 when the stream has no token
-
-    @property
-    def total(self) -> int:
-        return self.start.shape[0]
-
-    @property
-    def num_streams(self) -> int:
-        return self.last.shape[0]
-
-    def segment_start(self) -> Tensor:
-        """Index of the first token of every token's segment -> (T,) int64."""
-        t = torch.arange(self.total, device=self.start.device)  # (T,)
-        return torch.where(self.start, t, 0).cummax(0).values  # (T,)
+from model.ops.segments import Segments
 
 
 def _starts(key: Tensor, valid: Tensor) -> Tensor:

@@ -14,9 +14,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from model.geometry.rulebook import _decode_keys
-
-SENTINEL: int = 2**62  # linear key of a padding row; sorts after every real key
+from model.geometry.rulebook import keys_to_coords
+from model.geometry.sparse_tensor import SENTINEL
 
 
 @dataclass(frozen=True)
@@ -69,7 +68,7 @@ def decode_keys(keys: Tensor, spatial_shape: tuple[int, int, int], batch_size: i
     (batch_size, 0, 0, 0) (the key of that position is batch_size * R * THETA * Z)."""
     n_r, n_t, n_z = spatial_shape
     pad_key = batch_size * n_r * n_t * n_z
-    return _decode_keys(torch.where(keys == SENTINEL, pad_key, keys), spatial_shape)
+    return keys_to_coords(torch.where(keys == SENTINEL, pad_key, keys), spatial_shape)
 
 
 def make_sites(keys: Tensor, spatial_shape: tuple[int, int, int], batch_size: int, count: Tensor) -> Sites:

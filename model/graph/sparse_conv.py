@@ -4,10 +4,10 @@ The fixed-shape twins of `model.geometry.rulebook` + `model.layers.sparse_conv` 
 rulebook docstring). Instead of a rule book of (input, output, offset) pairs, whose length depends on the
 data, a conv gets a neighbour table of shape (cap_out, K0*K1): entry [o, k] is the input row feeding output
 row o through flat kernel offset k (k = k0 * K1 + k1), or cap_in, the row of an appended zero row, where
-none does. The conv is then one gather and one matmul (`conv_gemm`; on the CPU a kernel that multiplies
-only the entries naming a row, `conv_fixed`). Tables are built with
-`torch.searchsorted` on the sorted site keys (on the CPU its kernel twin, `model.graph.search_cpu`);
-padding rows (`Sites.valid` false) read only the zero row.
+none does. The conv is then one gather and one matmul (`model.ops.table_conv`: the implicit GEMM, on the
+CPU a kernel that multiplies only the entries naming a row). Tables are built with `searchsorted` on the
+sorted site keys (`model.ops.search`: on the CPU its kernel twin); padding rows (`Sites.valid` false) read
+only the zero row.
 """
 
 from __future__ import annotations
@@ -15,12 +15,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from model.geometry.rulebook import Plane, _key_strides, as_kernel, conv_out_shape
-from model.geometry.sparse_tensor import BATCH
-from model.graph.conv_cpu import conv_pairs
-from model.graph.search_cpu import search
-from model.graph.sites import SENTINEL, Sites, compact_sorted, make_sites
-from model.graph.sort_cpu import sort_keys
+from model.geometry.rulebook import Plane, as_kernel, conv_out_shape, key_strides
+from model.geometry.sparse_tensor import BATCH, SENTINEL
+from model.graph.sites import Sites, compact_sorted, make_sites
+from model.ops.search import search
+from model.ops.sort import sort_keys
 
 
 def _lookup(
@@ -36,7 +35,7 @@ def _lookup(
     coords (n, 4) and valid (n,) of the query sites (batch and fold coordinate are kept); pos[i] (K_i, n) the
     target coordinate on plane axis i per kernel index, ok[i] (K_i, n) whether it is inside the target grid.
     """
-    st = _key_strides(target.spatial_shape)
+    st = key_strides(target.spatial_shape)
     (a0, a1), fold = plane.axes, plane.fold_axis
     k0, k1, n = pos[0].shape[0], pos[1].shape[0], coords.shape[0]
     base = coords[:, BATCH] * st[BATCH] + coords[:, fold] * st[fold]  # (n,) key with plane axes at 0
@@ -70,7 +69,7 @@ def _strided_candidates(
     out_shape: tuple[int, int, int],
 ) -> Tensor:
     """Output keys reached by each input site through each offset -> (K0*K1*cap,) int64, SENTINEL if none."""
-    st = _key_strides(out_shape)
+    st = key_strides(out_shape)
     (a0, a1), fold = plane.axes, plane.fold_axis
     c = sites.coords
     opos, ok = [], []
@@ -119,24 +118,3 @@ def inverse_table(
         pos.append(torch.div(q, s, rounding_mode="floor"))
         ok.append((q >= 0) & (q % s == 0) & (q < out_sites.spatial_shape[ax - 1] * s))
     return _lookup(out_sites, in_sites.coords, in_sites.valid, plane, (pos[0], pos[1]), (ok[0], ok[1]))
-
-
-def conv_gemm(x: Tensor, table: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-    """x (cap_in, C_in), table (cap_out, KK) with entries in [0, cap_in], weight (KK, C_in, C_out), bias
-    (C_out,) or None -> (cap_out, C_out): out[o] = sum_k weight[k]^T x[table[o, k]] (+ bias), where
-    x[cap_in] is a zero row. The implicit GEMM: one gather and one matmul (CUDA; the reference twin of the
-    CPU kernel)."""
-    cap_out, kk = table.shape
-    c_in, c_out = weight.shape[1], weight.shape[2]
-    ext = torch.cat((x, x.new_zeros(1, c_in)))  # (cap_in + 1, C_in)
-    cols = ext.index_select(0, table.view(-1)).view(cap_out, kk * c_in)  # (cap_out, KK * C_in)
-    w = weight.reshape(kk * c_in, c_out)
-    return cols @ w if bias is None else torch.addmm(bias, cols, w)
-
-
-def conv_fixed(x: Tensor, table: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-    """`conv_gemm`'s contract; on CPU tensors through the kernel that multiplies only the entries naming a
-    row (`model.graph.conv_cpu`)."""
-    if x.device.type != "cpu":
-        return conv_gemm(x, table, weight, bias)
-    return conv_pairs(x, table, weight, bias)

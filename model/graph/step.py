@@ -20,22 +20,23 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from model.config import PHiMConfig
+from model.config import PHiMConfig, ScanImpl
 from model.detector import PHiM
 from model.geometry.rulebook import Plane
 from model.geometry.sparse_tensor import BATCH, THETA
 from model.geometry.sparse_tensor import R as R_AX
 from model.graph.bev import dense_cell_table, polar_to_bev
 from model.graph.bev_crop import crop_cells, crop_plan, merge_crop, wedge_bins, wedge_of
-from model.graph.mamba import mamba_forward
-from model.graph.segments import Segments, frustum_segments, stream_segments
+from model.graph.segments import frustum_segments, stream_segments
 from model.graph.sites import Sites, scatter_sum
-from model.graph.sparse_conv import conv_fixed, inverse_table, strided_sites, subm_table
+from model.graph.sparse_conv import inverse_table, strided_sites, subm_table
 from model.graph.voxelize import voxelize_fixed
 from model.layers.decomposed import DecomposedDown, DecomposedUp
 from model.layers.head import HeadOutput, peak_candidates, rot_channels
-from model.layers.mamba import MambaState
-from model.layers.phim_block import PHiMBlock
+from model.layers.mamba import MambaState, Packing
+from model.layers.phim_block import LocalPackings, PHiMBlock
+from model.ops.segments import Segments
+from model.ops.table_conv import table_conv
 
 # per stream columns of the host tensor; wedge: the sector's wedge (`model.graph.bev_crop.wedge_of`)
 STATS = ("points_kept", "points_out_of_range", "voxels", "wedge")
@@ -90,7 +91,7 @@ class _Down:
     inv_rz: Tensor  # (V, KK) rows of the sites after (a)
     coarse: Sites  # (M2,) the global Mamba's tokens
     counts: Tensor  # (2,) int64: the sites after (a) and after (c) there are (> capacity: overflow)
-    segments: Segments  # one per stream over the coarse sites
+    packing: Packing  # the global Mamba's: one segment per stream over the coarse sites
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,14 @@ class _Backbone:
     ssm: list[Tensor]  # per block the new global-Mamba ssm state (B, di, N)
 
 
-def _down_tables(sites: Sites, kernel: int, stride: int, kz: int, caps: tuple[int, int] | None) -> _Down:
+def _packing(segs: Segments, d_conv: int) -> Packing:
+    """A segmented pack for the Mamba layers, scanned by an implementation with no host sync."""
+    return Packing.of_segments(segs, d_conv, ScanImpl.AUTO)
+
+
+def _down_tables(
+    sites: Sites, kernel: int, stride: int, kz: int, caps: tuple[int, int] | None, d_conv: int
+) -> _Down:
     k2, ktz = (kernel, kernel), (kernel, kz)
     if stride == 1:  # submanifold: the same sites throughout; an inverse table is the mirrored table
         mid = coarse = sites
@@ -121,24 +129,22 @@ def _down_tables(sites: Sites, kernel: int, stride: int, kz: int, caps: tuple[in
         inv_tz = inverse_table(mid, coarse, ktz, (stride, 1), Plane.THETA_Z)
         inv_rz = inverse_table(sites, mid, k2, (stride, stride), Plane.RZ)
     segs = stream_segments(coarse.coords[:, BATCH], coarse.valid, sites.batch_size)
-    return _Down(rz, sub, tz, inv_tz, inv_rz, coarse, torch.stack([mid.count, coarse.count]), segs)
+    counts = torch.stack([mid.count, coarse.count])
+    return _Down(rz, sub, tz, inv_tz, inv_rz, coarse, counts, _packing(segs, d_conv))
 
 
 def _conv(conv: nn.Module, x: Tensor, table: Tensor) -> Tensor:
     """A folded sparse conv (weight (KK, C_in, C_out), bias (C_out,)) + ReLU over a neighbour table."""
-    return torch.relu(conv_fixed(x, table, conv.weight, conv.bias))
+    return torch.relu(table_conv(x, table, conv.weight, conv.bias))
 
 
-def _block(block: PHiMBlock, x: Tensor, local: tuple[Segments, Segments], t: _Down, state: MambaState):
-    """x (V, C) at the step's voxel sites -> (V, C), the block's new global-Mamba state (B rows)."""
-    h = block.norm_local(x)
-    fwd, _ = mamba_forward(block.fwd_mamba, h, local[0], None)
-    bwd, _ = mamba_forward(block.bwd_mamba, h.flip(0), local[1], None)
-    v_local = x + fwd + bwd.flip(0)  # (V, C)
+def _block(block: PHiMBlock, x: Tensor, local: LocalPackings, t: _Down, state: MambaState):
+    """x (V, C) at the step's voxel sites -> (V, C), the block's new global-Mamba state (B rows): the eager
+    block's layers (`PHiMBlock.local`, its global Mamba) over the step's segmented packs."""
+    v_local = block.local(x, local)  # (V, C)
     down: DecomposedDown = block.down
     h = _conv(down.conv_tz, _conv(down.conv_sub, _conv(down.conv_rz, v_local, t.rz), t.sub), t.tz)  # (M2, C)
-    g, new_state = mamba_forward(block.global_mamba, h, t.segments, state)
-    assert new_state is not None
+    g, new_state = block.global_mamba(h, t.packing, state)
     up: DecomposedUp = block.up
     h = _conv(up.inv_rz, _conv(up.inv_tz, block.norm_global(g), t.inv_tz), t.inv_rz)  # (V, C)
     return h + v_local, new_state
@@ -229,14 +235,16 @@ class GraphStep(nn.Module):
         """`forward`'s points and global-Mamba states -> the voxelizer and 3D backbone's outputs."""
         m, cfg = self.model, self.cfg
         sites, x, kept, out_of_range = voxelize_fixed(m.voxelizer, points, counts, cap.voxels)
-        local = frustum_segments(
+        d_conv = cfg.backbone.mamba.d_conv
+        fwd, bwd = frustum_segments(
             sites.coords, sites.valid, cfg.grid.theta_bins, cfg.backbone.frustum_theta_bins
         )
+        local = LocalPackings(_packing(fwd, d_conv), _packing(bwd, d_conv))
         tables: dict[tuple[int, int], _Down] = {}
         site_counts = [sites.count]
         for key in dict.fromkeys((b.kernel, b.stride) for b in m.backbone.blocks):
             caps = cap.coarse[self.keys.index(key)] if key[1] > 1 else None
-            tables[key] = _down_tables(sites, key[0], key[1], cfg.backbone.tz_kernel_z, caps)
+            tables[key] = _down_tables(sites, key[0], key[1], cfg.backbone.tz_kernel_z, caps, d_conv)
         site_counts += [n for key in self.keys for n in tables[key].counts.unbind()]
         new_conv, new_ssm = [], []
         for block, c, s in zip(m.backbone.blocks, conv, ssm, strict=True):

@@ -25,7 +25,8 @@ from torch import Tensor, nn
 from model.config import BEVConfig, HeadConfig, HeadingCode
 from model.geometry.boxes import Detections
 from model.geometry.nms import class_nms
-from model.geometry.nms_cpu import class_nms_batch_cpu
+from model.ops.nms_numba import class_nms_batch_cpu
+from model.ops.numba_support import numba_kernel
 
 HEATMAP_PRIOR_BIAS = -2.19  # log(0.1 / 0.9): initial heatmap probability about 0.1, as CenterPoint
 MAX_LOG_DIM = 4.0  # exp(4) = 55 m: keeps early, untrained dims finite (decoding at target cells)
@@ -220,11 +221,12 @@ def decode(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> list[Detections]
     return select_detections(peak_candidates(out, cfg, bev), cfg)
 
 
-def select_detections(cand: Candidates, cfg: HeadConfig) -> list[Detections]:
+def select_detections(cand: Candidates, cfg: HeadConfig, fast: bool | None = None) -> list[Detections]:
     """The score threshold and class-specific NMS of `decode`, per batch item, on the candidates' device:
-    on CPU tensors the whole batch in one kernel call (`nms_cpu.class_nms_batch_cpu`: a batch of 32 KITTI
-    streams in 1.0 ms against 5.3 item by item), elsewhere `select_detections_plain`, its twin."""
-    if cand.boxes.device.type != "cpu":
+    the whole batch in one numba kernel call (`model.ops.nms_numba.class_nms_batch_cpu`: a batch of 32 KITTI
+    streams in 1.0 ms against 5.3 item by item), or `select_detections_plain`, its twin, as `fast` says
+    (`numba_kernel`: None, the kernel on CPU tensors)."""
+    if not numba_kernel("class_nms_batch", cand.boxes.device, fast):
         return select_detections_plain(cand, cfg)
     valid = _peaks(cand.heat, cfg)  # (B, T)
     flat, counts = class_nms_batch_cpu(

@@ -8,6 +8,11 @@
 
 A sequence cut into pieces and fed piece by piece with the returned state carried gives exactly the
 outputs of one call over the whole sequence (any piece lengths, including 1 and < d_conv - 1).
+
+The layer runs over a `Packing`: packed variable-length sequences (cu_seqlens: the eager model), or a
+fixed-length segmented pack with padding (`model.ops.segments.Segments`: the fixed-shape step, with no host
+sync and no data-dependent shape). Both are the same segmented pack to the causal conv's gathers and to the
+selective scan (`model.ops.scan`), so the layer is written once for both engines.
 """
 
 from __future__ import annotations
@@ -19,8 +24,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from model.config import MambaConfig
+from model.config import MambaConfig, ScanImpl
 from model.ops.scan import selective_scan
+from model.ops.segments import Segments
 
 
 @dataclass
@@ -57,57 +63,61 @@ class MambaState:
         return MambaState(conv=torch.cat([s.conv for s in states]), ssm=torch.cat([s.ssm for s in states]))
 
 
-def _positions(cu_seqlens: Tensor, total: int) -> tuple[Tensor, Tensor]:
-    """Sequence id and position inside its sequence of every packed token -> ((T,), (T,)) int64."""
-    lengths = cu_seqlens.diff()  # (S,)
-    seq = torch.repeat_interleave(
-        torch.arange(lengths.numel(), device=cu_seqlens.device), lengths, output_size=total
-    )  # (T,)
-    pos = torch.arange(total, device=cu_seqlens.device) - cu_seqlens.index_select(0, seq)  # (T,)
-    return seq, pos
+def conv_gather_indices(segs: Segments, d_conv: int) -> tuple[Tensor, Tensor]:
+    """Gather indices into ext = cat([x (T, C), state rows (S' * (d_conv - 1), C)]) for the causal conv over a
+    segmented pack (a segment start continues its stream's conv state, as the scan continues its ssm state).
 
-
-def conv_gather_indices(cu_seqlens: Tensor, total: int, d_conv: int) -> tuple[Tensor, Tensor]:
-    """Gather indices into ext = cat([x (T, C), state rows (S * (d_conv - 1), C)]) for the packed causal conv.
-
-    Row s * (d_conv - 1) + c of the state part is column c (oldest first) of sequence s's conv state.
+    Row s * (d_conv - 1) + c of the state part is column c (oldest first) of stream s's conv state.
     Returns (older (d_conv - 1, T): row i = the input d_conv - 1 - i steps before each token;
-             new_state (S, d_conv - 1): the last d_conv - 1 inputs of each sequence, oldest first).
+             new_state (S, d_conv - 1): the last d_conv - 1 inputs of each stream's segment, oldest first).
     """
     w = d_conv - 1
-    dev = cu_seqlens.device
-    seq, pos = _positions(cu_seqlens, total)  # (T,), (T,)
+    T = segs.total
+    dev = segs.start.device
+    t = torch.arange(T, device=dev)  # (T,)
+    pos = t - segs.segment_start()  # (T,) position inside the segment
     lag = torch.arange(w, 0, -1, device=dev)[:, None]  # (w, 1)
-    back = pos[None, :] - lag  # (w, T) position inside the sequence; < 0 runs off its start
-    tok = torch.arange(total, device=dev)[None, :] - lag  # (w, T)
-    older = torch.where(back >= 0, tok, total + seq[None, :] * w + w + back)  # state column w + back
-    lengths = cu_seqlens.diff()  # (S,)
+    back = pos[None, :] - lag  # (w, T) < 0: runs off the segment's start, into the state columns
+    older = torch.where(back >= 0, t[None, :] - lag, T + segs.seg[None, :] * w + w + back)  # (w, T)
+    last = segs.last  # (S,)
+    if T:
+        lengths = torch.where(last >= 0, pos.index_select(0, last.clamp(min=0)) + 1, 0)  # (S,)
+    else:  # no token: every stream keeps its state
+        lengths = torch.zeros_like(last)
     col = torch.arange(w, device=dev)[None, :]  # (1, w)
-    p = lengths[:, None] - w + col  # (S, w) position inside the sequence
-    s_idx = torch.arange(lengths.numel(), device=dev)[:, None]  # (S, 1)
-    new_state = torch.where(p >= 0, cu_seqlens[:-1, None] + p, total + s_idx * w + col + lengths[:, None])
+    p = lengths[:, None] - w + col  # (S, w) position inside the segment
+    s_idx = torch.arange(last.shape[0], device=dev)[:, None]  # (S, 1)
+    new_state = torch.where(p >= 0, last[:, None] - (w - 1) + col, T + s_idx * w + col + lengths[:, None])
     return older, new_state
 
 
 @dataclass(frozen=True)
 class Packing:
-    """Packed sequences and the causal conv's gather indices over them (`conv_gather_indices`).
+    """A segmented pack and the causal conv's gather indices over it (`conv_gather_indices`).
 
     Build it once and hand it to every layer that runs over the same packing (the local Mamba layers of
     all PHiM blocks share two): the index arithmetic is a few dozen small ops, a kernel launch each on a GPU.
+    `scan`, when set, overrides the layers' `MambaConfig.scan` (the fixed-shape step: an implementation with
+    no host sync, `ScanImpl.AUTO`).
     """
 
-    cu_seqlens: Tensor  # (S + 1,) int64
+    segments: Segments
     older: Tensor  # (d_conv - 1, T)
     new_state: Tensor  # (S, d_conv - 1)
+    scan: ScanImpl | None = None
 
     @staticmethod
     def of(cu_seqlens: Tensor, total: int, d_conv: int) -> Packing:
-        return Packing(cu_seqlens, *conv_gather_indices(cu_seqlens, total, d_conv))
+        """Packed sequences: cu_seqlens (S + 1,) int64 over `total` tokens, sequence s continuing state s."""
+        return Packing.of_segments(Segments.of_cu_seqlens(cu_seqlens, total), d_conv)
+
+    @staticmethod
+    def of_segments(segs: Segments, d_conv: int, scan: ScanImpl | None = None) -> Packing:
+        return Packing(segs, *conv_gather_indices(segs, d_conv), scan)
 
     @property
     def num_seqs(self) -> int:
-        return self.cu_seqlens.numel() - 1
+        return self.segments.num_streams
 
     @property
     def total(self) -> int:
@@ -149,12 +159,13 @@ class Mamba(nn.Module):
             self.dt_proj.bias.copy_(dt + torch.log(-torch.expm1(-dt)))  # inverse softplus
 
     def _conv(self, x: Tensor, packing: Packing, conv_state: Tensor) -> tuple[Tensor, Tensor]:
-        """Packed causal depthwise conv: x (T, di), conv_state (S, di, d_conv - 1) -> (T, di), new state."""
+        """Packed causal depthwise conv: x (T, di), conv_state (S', di, d_conv - 1) -> (T, di), new state
+        (S, di, d_conv - 1)."""
         di = x.shape[1]
         k = self.cfg.d_conv
         older, new_idx = packing.older, packing.new_state  # (k - 1, T), (S, k - 1)
-        state_rows = conv_state.to(x.dtype).transpose(1, 2).reshape(-1, di)  # (S * (k - 1), di)
-        ext = torch.cat([x, state_rows])  # (T + S * (k - 1), di)
+        state_rows = conv_state.to(x.dtype).transpose(1, 2).reshape(-1, di)  # (S' * (k - 1), di)
+        ext = torch.cat([x, state_rows])  # (T + S' * (k - 1), di)
         weight = self.conv1d.weight.view(di, k).t()  # (k, di), row k - 1 multiplies the current token
         out = torch.addcmul(self.conv1d.bias, x, weight[k - 1])  # (T, di)
         for i in range(k - 1):  # older inputs, one gather per lag
@@ -169,8 +180,9 @@ class Mamba(nn.Module):
     def forward(
         self, x: Tensor, seqs: Tensor | Packing, state: MambaState | None = None
     ) -> tuple[Tensor, MambaState]:
-        """x (T, d_model) packed; seqs: cu_seqlens (S + 1,) int64, or a Packing of them built for this layer's
-        d_conv (shared between layers over the same sequences); state with S rows or None (zeros)."""
+        """x (T, d_model) packed; seqs: cu_seqlens (S + 1,) int64, or a Packing built for this layer's d_conv
+        (shared between layers over the same pack); state with S rows or None (zeros). Returns (T, d_model)
+        (padding rows of a segmented pack: finite, meaningless) and the new state (S rows)."""
         cfg = self.cfg
         packing = seqs if isinstance(seqs, Packing) else self.packing(seqs, x.shape[0])
         if packing.total != x.shape[0] or packing.older.shape[0] != cfg.d_conv - 1:
@@ -178,21 +190,22 @@ class Mamba(nn.Module):
                 f"packing for {packing.total} tokens and d_conv {packing.older.shape[0] + 1}; "
                 f"got {x.shape[0]} tokens, d_conv {cfg.d_conv}"
             )
-        cu_seqlens, S = packing.cu_seqlens, packing.num_seqs
-        if state is None:
-            state = MambaState.zeros(S, self.d_inner, cfg.d_conv, cfg.d_state, x.device, x.dtype)
+        S = packing.num_seqs
+        if state is None:  # zeros; at least one conv row (a frustum pack's segments continue none, seg 0)
+            conv = x.new_zeros(max(S, 1), self.d_inner, cfg.d_conv - 1)  # (S', di, d_conv - 1)
             h0 = None
         else:
             if state.num_seqs != S:
-                raise ValueError(f"state has {state.num_seqs} sequences, cu_seqlens describes {S}")
-            h0 = state.ssm
+                raise ValueError(f"state has {state.num_seqs} sequences, the packing describes {S}")
+            conv, h0 = state.conv, state.ssm
         xz = self.in_proj(x)  # (T, 2 di)
         xi, z = xz.chunk(2, dim=-1)  # (T, di) each
-        xc, conv_state = self._conv(xi, packing, state.conv)
+        xc, conv_state = self._conv(xi, packing, conv)
         xc = F.silu(xc)  # (T, di)
         dt, B, C = self.x_proj(xc).split([self.dt_rank, cfg.d_state, cfg.d_state], dim=-1)
         delta = F.softplus(self.dt_proj(dt))  # (T, di)
         A = -torch.exp(self.A_log.to(torch.promote_types(self.A_log.dtype, torch.float32)))  # (di, n | 1)
-        y, ssm_state = selective_scan(xc, delta, A, B, C, cu_seqlens, h0, cfg.scan, cfg.chunk_size)  # (T, di)
+        scan = cfg.scan if packing.scan is None else packing.scan
+        y, ssm_state = selective_scan(xc, delta, A, B, C, packing.segments, h0, scan, cfg.chunk_size)
         y = (y + xc * self.D.to(y.dtype)) * F.silu(z)  # (T, di)
         return self.out_proj(y), MambaState(conv=conv_state, ssm=ssm_state)

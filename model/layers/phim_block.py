@@ -110,12 +110,14 @@ class PHiMBlock(nn.Module):
     def local_packings(self, x: SparseTensor) -> LocalPackings:
         return LocalPackings.of(x, self.frustum_theta_bins, self.fwd_mamba.cfg.d_conv)
 
-    def local(self, x: SparseTensor, seqs: LocalPackings) -> Tensor:
-        """Bidirectional Mamba inside each frustum -> V_local features (N, C)."""
-        h = self.norm_local(x.features)  # (N, C)
+    def local(self, x: SparseTensor | Tensor, seqs: LocalPackings) -> Tensor:
+        """Bidirectional Mamba inside each frustum -> V_local features (N, C). x: the sites, or their
+        features (N, C) (the fixed-shape step's padded rows, with segmented packings)."""
+        feats = x.features if isinstance(x, SparseTensor) else x  # (N, C)
+        h = self.norm_local(feats)  # (N, C)
         fwd, _ = self.fwd_mamba(h, seqs.fwd)
         bwd, _ = self.bwd_mamba(h.flip(0), seqs.bwd)  # flipping the pack reverses every frustum
-        return x.features + fwd + bwd.flip(0)
+        return feats + fwd + bwd.flip(0)
 
     def forward(
         self,

@@ -10,8 +10,8 @@ refined box's 3D IoU; the refined score is score^(1 - a) * iou^a (`RefineConfig.
 head's IoU rectification.
 
 `box_points` finds the points through a grid index of 1 m cells: a numba kernel on the CPU
-(`refine_cpu`), tensor ops elsewhere (`box_points_torch`); `box_points_reference`, the plain twin, tests
-every point against every box. tests/test_refine.py holds them equal.
+(`model.ops.box_points_numba`), tensor ops elsewhere (`box_points_torch`); `box_points_reference`, the plain
+twin, tests every point against every box. tests/test_refine.py holds them equal.
 """
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ from torch import Tensor, nn
 
 from model.config import RefineConfig
 from model.geometry.boxes import Detections
-from model.layers.refine_cpu import REACH, SLACK, box_points_cpu, grid_cells
+from model.ops.box_points_numba import REACH, SLACK, box_points_cpu, grid_cells
+from model.ops.numba_support import numba_kernel
 
 _CELL = 1.0  # metres: the grid index's cells
 _EPS = 1e-3  # metres around a box's bounding rectangle
@@ -60,17 +61,19 @@ def box_points_reference(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tu
     return _inside(points, boxes, box, point, cfg)
 
 
-def box_points(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[Tensor, Tensor]:
-    """`box_points_reference`'s result: on CPU tensors by a numba kernel (`refine_cpu`), else by tensor ops
-    (`box_points_torch`)."""
-    if points.device.type == "cpu":
+def box_points(
+    points: Tensor, boxes: Tensor, cfg: RefineConfig, fast: bool | None = None
+) -> tuple[Tensor, Tensor]:
+    """`box_points_reference`'s result: by a numba kernel (`model.ops.box_points_numba`) or by tensor ops
+    (`box_points_torch`), as `fast` says (`numba_kernel`: None, the kernel on CPU tensors)."""
+    if numba_kernel("box_points", points.device, fast):
         return box_points_cpu(points, boxes, cfg.grow, cfg.points, _CELL, _EPS)
     return box_points_torch(points, boxes, cfg)
 
 
 def box_points_torch(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[Tensor, Tensor]:
-    """`box_points_reference`'s result through the kernel's grid index (`refine_cpu`: 1 m cells over the
-    boxes' rectangles, at most `MAX_SIDE` a side; one sort of the points by cell):
+    """`box_points_reference`'s result through the kernel's grid index (`box_points_numba`: 1 m cells
+    over the boxes' rectangles, at most `MAX_SIDE` a side; one sort of the points by cell):
     each box tests the points of the cells under its grown outline's bounding rectangle, one contiguous run
     of the sorted points per column of cells. Safe for any values, as the kernel."""
     b, dev = boxes.shape[0], points.device
@@ -102,7 +105,7 @@ def box_points_torch(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[
 
 def _rectangles(boxes: Tensor, grow: tuple[float, float, float]) -> Tensor:
     """boxes (B, 7) -> (B, 4) float64 lo_x, lo_y, hi_x, hi_y: each grown box's bounding rectangle, as the
-    kernel's (`refine_cpu._rectangles`: widened by _EPS and SLACK, a NaN bound unbounded)."""
+    kernel's (`box_points_numba._rectangles`: widened by _EPS and SLACK, a NaN bound unbounded)."""
     bx = boxes.double()
     half_l, half_w = (bx[:, 3] + grow[0]) / 2, (bx[:, 4] + grow[1]) / 2
     c, s = torch.cos(bx[:, 6]).abs(), torch.sin(bx[:, 6]).abs()
@@ -112,7 +115,8 @@ def _rectangles(boxes: Tensor, grow: tuple[float, float, float]) -> Tensor:
 
 
 def _index(v: Tensor, origin: float, cell: float, n: int) -> Tensor:
-    """`refine_cpu._index` of each value: the cell in [0, n) of a grid from `origin`, clamped as a float."""
+    """`box_points_numba._index` of each value: the cell in [0, n) of a grid from `origin`, clamped as a
+    float."""
     return ((v - origin) / cell).nan_to_num_(nan=0.0).clamp_(0, n - 1).floor_().long()
 
 

@@ -212,10 +212,10 @@ class PolarVoxelizer(nn.Module):
         if g.vid.numel() == 0:
             feats = torch.zeros(0, self.out_channels, device=device, dtype=weight.dtype)
         else:
-            feats = self._encode(g.features, g.vid, int(g.keys.shape[0]))
+            feats = self.encode(g.features, g.vid, int(g.keys.shape[0]))
         return SparseTensor(feats, self._decode(g.keys), self.spatial_shape, len(points)), stats
 
-    def _base(self, points: list[Tensor], device: torch.device, dtype: torch.dtype) -> Tensor:
+    def base_rows(self, points: list[Tensor], device: torch.device, dtype: torch.dtype) -> Tensor:
         """-> (P + 5, N) contiguous rows: x, y, z, intensity, ... (zero-padded to P), r, 3 free, theta."""
         n_p = self.point_features
         base = torch.empty(n_p + 5, sum(int(p.shape[0]) for p in points), device=device, dtype=dtype)
@@ -233,8 +233,8 @@ class PolarVoxelizer(nn.Module):
     def _group(self, points: list[Tensor], counts: list[int], device: torch.device, dtype) -> _Grouped:
         """Bin points into voxels, drop out-of-range ones, sort by voxel key (= linear_key order)."""
         n_r, n_t, n_z = self.spatial_shape
-        base = self._base(points, device, dtype)  # (P + 5, N)
-        ri, ti, zi, in_range = self._bin(base)  # (N,) each
+        base = self.base_rows(points, device, dtype)  # (P + 5, N)
+        ri, ti, zi, in_range = self.bin_rows(base)  # (N,) each
         batch = torch.repeat_interleave(
             torch.arange(len(counts), device=device),
             torch.tensor(counts, device=device, dtype=torch.int64),
@@ -252,11 +252,11 @@ class PolarVoxelizer(nn.Module):
         vid = new_voxel.long().cumsum_(0).sub_(1)  # (n,)
         keys = sorted_key[new_voxel]  # (V,)
         npts = torch.bincount(vid, minlength=int(keys.shape[0]))  # (V,) points per voxel
-        return _Grouped(self._features(base, order, vid, npts), vid, keys, kept_per_item)
+        return _Grouped(self.vfe_input(base, order, vid, npts), vid, keys, kept_per_item)
 
-    def _bin(self, base: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Voxel indices of the points of `base` (P + 5, N), from `_base`: -> r, theta, z index (N,) int64 and
-        in range (N,) bool. Writes the offsets from the voxel centre into base's 3 free rows."""
+    def bin_rows(self, base: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Voxel indices of the points of `base` (P + 5, N), from `base_rows`: -> r, theta, z index (N,) int64
+        and in range (N,) bool. Writes the offsets from the voxel centre into base's 3 free rows."""
         gr, n_p = self.grid, self.point_features
         n_r, n_t, n_z = self.spatial_shape
         z, r, theta = base[2], base[n_p], base[n_p + 4]
@@ -271,7 +271,7 @@ class PolarVoxelizer(nn.Module):
         in_range = (r >= gr.r_min) & (r < gr.r_max) & (z >= gr.z_min) & (z < gr.z_max)  # (N,)
         return ri, ti, zi, in_range
 
-    def _features(self, base: Tensor, order: Tensor, vid: Tensor, npts: Tensor) -> Tensor:
+    def vfe_input(self, base: Tensor, order: Tensor, vid: Tensor, npts: Tensor) -> Tensor:
         """-> (P + 9, n) VFE input of the points base[:, order] (layout in the module docstring); vid (n,)
         their voxel ids, npts (V,) the points per voxel (>= 1 wherever a point lies)."""
         n_p = self.point_features
@@ -295,7 +295,7 @@ class PolarVoxelizer(nn.Module):
         rest = rest // n_r
         return torch.stack([rest // n_t, r, rest % n_t, z], dim=1)
 
-    def _encode(self, features: Tensor, vid: Tensor, num_voxels: int) -> Tensor:
+    def encode(self, features: Tensor, vid: Tensor, num_voxels: int) -> Tensor:
         """Dynamic VFE over grouped points, features (P + 9, n) from `_features`, vid (n,) in [0, V) ->
         (V, out_channels) voxel features."""
         h, voxel = features.t(), None  # (n, P + 9) view of the column-major input

@@ -3,7 +3,6 @@ backward they borrow from their plain-torch twins."""
 
 from __future__ import annotations
 
-import functools
 import importlib.util
 import os
 import shutil
@@ -20,14 +19,18 @@ def triton_available(device: torch.device) -> bool:
     return device.type == "cuda" and _triton_installed()
 
 
-@functools.cache
-def _triton_installed() -> bool:  # looked up once per process: the sparse convs and scans ask on every call
-    return importlib.util.find_spec("triton") is not None and has_c_compiler()
+def _triton_installed() -> bool:
+    """Looked up once per process (the sparse convs and scans ask on every call), at import: a plain global
+    then, which torch.compile reads as a constant where the fixed-shape step dispatches its scan."""
+    return _INSTALLED
 
 
 def has_c_compiler() -> bool:
     """$CC, gcc or clang on the PATH: the compilers Triton looks for."""
     return any(shutil.which(c) for c in (os.environ.get("CC", ""), "gcc", "clang") if c)
+
+
+_INSTALLED = importlib.util.find_spec("triton") is not None and has_c_compiler()
 
 
 def grads_by_recompute(fn: Callable[..., Any], inputs: Sequence[Tensor | None], grad_out: Any) -> list:

@@ -16,7 +16,8 @@ from torch import Tensor
 
 from model.config import Engine, Precision
 from model.detector import PHiM
-from model.graph.engine import Detector, GraphStreamingDetector, SectorRejected, streaming_detector
+from model.engine import EngineSettings, SectorRejected, StreamEngine, engine_for
+from model.graph.engine import GraphStreamingDetector
 from model.layers.phim_block import StreamLayout
 from model.layers.refine import box_points_many, refine_many, refiner_forward
 from model.ops.scan import resolve_scan
@@ -34,8 +35,8 @@ class ModelBench:
     refiner: bool  # the box refiner ran after each step
     threads: int
     batch: int  # streams per forward
-    sector_points: int  # fixed/graph: the points every sector was padded to (0: its own bucket)
-    bev_crop: bool  # fixed/graph: the dense part on crops after a stream's first turn
+    sector_points: int  # graph: the points every sector was padded to (0: its own bucket)
+    bev_crop: bool  # graph: the dense part on crops after a stream's first turn
     sectors_per_turn: int
     points_per_sector: list[int]
     iterations: int  # timed steps
@@ -88,11 +89,11 @@ class _Streams:
     """`batch` streams of one detector, each stepped through the same sectors (a graph detector first learns
     its capacities from them)."""
 
-    def __init__(self, det: Detector, sectors: list[Tensor], batch: int = 1):
+    def __init__(self, det: StreamEngine, sectors: list[Tensor], batch: int = 1):
         if isinstance(det, GraphStreamingDetector):
             det.calibrate(sectors)
         self.det, self.sectors, self.batch = det, sectors, batch
-        self.states = [det.init_state() for _ in range(batch)]
+        self.states = [det.new_state() for _ in range(batch)]
 
     def turn(self) -> list[float]:
         """Step every sector once; the ms of each step."""
@@ -125,9 +126,10 @@ def bench_model(
     after warm-up (a graph engine first learns its capacities from the turn, and compiles during the
     warm-up; every sector padded to `sector_points` shares one bucket; `bev_crop`: its dense part on crops
     after a stream's first turn)."""
-    det = streaming_detector(
-        model, engine, precision=precision, sector_points=sector_points, bev_crop=bev_crop
+    settings = EngineSettings(
+        engine=engine, precision=precision, sector_points=sector_points, bev_crop=bev_crop
     )
+    det = engine_for(model, settings)
     dev = det.device
     cfg = model.cfg
     sectors = [s.to(dev) for s in split_turn(turn, cfg.sectors_per_turn)]
@@ -155,7 +157,7 @@ def bench_model(
         threads=torch.get_num_threads(),
         batch=batch,
         sector_points=sector_points,
-        bev_crop=isinstance(det, GraphStreamingDetector) and det.bev_crop,
+        bev_crop=bool(det.describe().bev_crop),
         sectors_per_turn=len(sectors),
         points_per_sector=[int(s.shape[0]) for s in sectors],
         iterations=len(all_ms),
@@ -173,7 +175,7 @@ class EngineComparison:
     config: str
     device: str
     precision: str
-    scan: str  # the eager engine's selective scan (the fixed-shape engines have their own)
+    scan: str  # the eager engine's selective scan (the graph engine has its own)
     refiner: bool  # the box refiner ran after each step
     threads: int
     engines: list[str]  # the first is the one the others are divided by
@@ -202,7 +204,10 @@ def compare_engines(
     if len(engines) < 2 or len(set(engines)) != len(engines):
         raise ValueError(f"engines: {[e.value for e in engines]}; expected two or more different engines")
     sectors = [s.to(model.device) for s in split_turn(turn, model.cfg.sectors_per_turn)]
-    runs = {e: _Streams(streaming_detector(model, e, precision=precision), sectors) for e in engines}
+    runs = {
+        e: _Streams(engine_for(model, EngineSettings(engine=e, precision=precision)), sectors)
+        for e in engines
+    }
     for t in range(warmup_turns):
         progress(_turn_stage(t, warmup_turns, rounds) + " of each engine")
         for run in runs.values():

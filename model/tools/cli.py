@@ -120,14 +120,14 @@ def info(config: str, points: Path | None, as_json: bool) -> None:
     type=click.IntRange(0),
     default=0,
     show_default=True,
-    help="fixed/graph: pad every sector to this many points (one capacity bucket, one compile, as a server "
+    help="graph: pad every sector to this many points (one capacity bucket, one compile, as a server "
     "pads to its --sector-points); 0: each sector's own bucket.",
 )
 @click.option(
     "--bev-crop/--whole-map",
     default=True,
     show_default=True,
-    help="fixed/graph: the BEV backbone and head on a crop around each new sector once a stream has run a "
+    help="graph: the BEV backbone and head on a crop around each new sector once a stream has run a "
     "turn (docs/model.md), or on the whole map every step.",
 )
 @json_option
@@ -203,7 +203,7 @@ def bench_model_cmd(
     "--engines",
     default="eager,graph",
     show_default=True,
-    help="Comma-separated engines (eager, fixed, graph); the others' ratios are to the first's.",
+    help="Comma-separated engines (eager, graph); the others' ratios are to the first's.",
 )
 @click.option("--rounds", type=click.IntRange(1), default=10, show_default=True, help="Timed turns of each.")
 @click.option("--scan", type=EnumValue(ScanImpl), help="The eager engine's scan [default: the config's].")
@@ -236,7 +236,7 @@ def bench_engines_cmd(
     progress = Progress("bench engines")
     progress(f"loading the model ({checkpoint or config})")
     model = load_model(config, checkpoint, device, threads, refiner)
-    if scan is not None:  # the fixed-shape engines have their own segmented scan
+    if scan is not None:  # the graph engine has its own segmented scan
         model.set_scan(scan)
     turn, source = load_turn(points, fallback_kitti=True, command="bench engines")
     engine_list = [Engine(n) for n in names]

@@ -83,7 +83,7 @@ def count_ops(model: PHiM, turn: Tensor, engine: Engine = Engine.EAGER) -> OpRep
     det = GraphStreamingDetector(model) if graph else StreamingDetector(model)
     dev = det.device
     sectors = [s.to(dev) for s in split_turn(turn, model.cfg.sectors_per_turn)]
-    state = det.init_state()
+    state = det.new_state()
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
     with torch.inference_mode():
         for s in sectors:

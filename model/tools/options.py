@@ -136,7 +136,7 @@ engine_option: Decorator = click.option(
     default=Engine.EAGER.value,
     show_default=True,
     show_envvar=True,
-    help="eager (the reference), fixed (the fixed-shape step, op by op) or graph (it, compiled).",
+    help="eager (the reference) or graph (the fixed-shape step, compiled).",
 )
 
 

@@ -1,4 +1,5 @@
-"""`torch.searchsorted` for the neighbour tables as a CPU kernel (numba), a torch custom op.
+"""`torch.searchsorted` for the neighbour tables as a CPU kernel (numba), a torch custom op
+(`model.ops.search` dispatches).
 
 A table looks up K0*K1 rows of queries (one per kernel offset) among a capacity's sorted site keys. Within
 a row the queries are the sites' own keys shifted by one offset, so they come nearly sorted (padding and
@@ -8,7 +9,7 @@ previous one's answer (a few steps right, else a bisection), and a query at or p
 (SENTINEL) is answered without a search: 0.6 against 2.4 ms for the tables of a `tiny` step on the 2-core
 machine. The result is searchsorted's exactly (side left: the first position whose key is >= the query)
 for any queries, sorted or not; the parity test holds them equal. One thread and numba, for the reasons
-given in `model.graph.scan_cpu`; a custom op so that torch.compile calls it as one opaque op.
+given in `model.ops.scan_numba`; a custom op so that torch.compile calls it as one opaque op.
 """
 
 from __future__ import annotations
@@ -56,20 +57,13 @@ def _search(keys, queries, out):  # pragma: no cover - compiled
 
 
 @torch.library.custom_op("phim::sorted_search", mutates_args=(), device_types="cpu")
-def sorted_search(keys: Tensor, queries: Tensor) -> Tensor:
+def search_numba(keys: Tensor, queries: Tensor) -> Tensor:
     """keys (n,) int64 sorted, queries (R, Q) int64 -> (R, Q) int64 = torch.searchsorted(keys, queries)."""
     out = torch.empty(queries.shape, dtype=torch.int64)
     _search(keys.contiguous().numpy(), queries.contiguous().numpy(), out.numpy())
     return out
 
 
-@sorted_search.register_fake
+@search_numba.register_fake
 def _(keys, queries):
     return queries.new_empty(queries.shape)
-
-
-def search(keys: Tensor, queries: Tensor) -> Tensor:
-    """torch.searchsorted(keys, queries) for (R, Q) int64 queries, through the kernel on CPU tensors."""
-    if keys.device.type != "cpu":
-        return torch.searchsorted(keys, queries)
-    return sorted_search(keys, queries)

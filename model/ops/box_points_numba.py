@@ -1,4 +1,5 @@
-"""The box refiner's point lookup as a CPU kernel (numba): the fast twin of `refine.box_points_torch`.
+"""The box refiner's point lookup as a CPU kernel (numba): the fast twin of
+`model.layers.refine.box_points_torch` (`refine.box_points` dispatches).
 
 The torch version sorts every point of the turn by its 1 m cell (~120,000 points for a KITTI turn) and
 gathers candidate rows as tensor ops: 10-15 ms a step on the 2-core machine. Here the points are bucketed

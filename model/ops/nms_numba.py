@@ -1,4 +1,6 @@
-"""Greedy rotated NMS as a CPU kernel (numba): the fast twin of `model.geometry.nms._grouped_nms_torch`.
+"""Greedy rotated NMS as a CPU kernel (numba): the fast twin of `model.geometry.nms._grouped_nms_torch`
+(`nms._grouped_nms` dispatches), and of a batch's class-specific NMS (`model.layers.head.select_detections`
+dispatches to it or to its twin, `select_detections_plain`).
 
 The torch version finds overlapping pairs and runs the greedy pass as tensor ops: on the host that is
 1.1 ms a `tiny` sector and 5 ms for the 4,096 candidates of an untrained `paper` model on the 2-core

@@ -1,4 +1,4 @@
-"""The voxelizer's CPU kernels (model/graph/voxelize_cpu.py) against their torch twins in
+"""The voxelizer's CPU kernels (model/ops/voxelize_numba.py) against their torch twins in
 model/graph/voxelize.py: the same keys, voxel rows, counts and stats exactly, the same features."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ from torch import Tensor
 
 from lidar.samples import KITTI_000000
 from model.config import paper, tiny
-from model.graph.sites import SENTINEL
-from model.graph.voxelize import _group_torch, _point_keys_torch
-from model.graph.voxelize_cpu import grid_args, group_sorted, point_keys
+from model.geometry.sparse_tensor import SENTINEL
+from model.graph.voxelize import group_torch, point_keys_torch
 from model.layers.voxelize import PolarVoxelizer
+from model.ops.voxelize_numba import grid_args, group_sorted, point_keys
 from model.sectors import load_kitti_bin, split_turn
 
 
@@ -29,8 +29,8 @@ def padded(sectors: list[Tensor], extra: int = 64) -> tuple[Tensor, Tensor]:
 
 
 def check_twins(vox: PolarVoxelizer, points: Tensor, counts: Tensor) -> None:
-    want = _point_keys_torch(vox, points, counts)
-    got = point_keys(points, counts, vox.point_features, *grid_args(vox))
+    want = point_keys_torch(vox, points, counts)
+    got = point_keys(points, counts, vox.point_features, *grid_args(vox.grid))
     key, base, kept, out = want
     assert torch.equal(got[0], key) and torch.equal(got[2], kept) and torch.equal(got[3], out)
     assert bool((key != SENTINEL).any()), "no point kept: the check below means nothing"
@@ -38,7 +38,7 @@ def check_twins(vox: PolarVoxelizer, points: Tensor, counts: Tensor) -> None:
     sorted_key, order = torch.sort(key, stable=True)
     sites = int((sorted_key[1:] != sorted_key[:-1]).sum())  # about the distinct real keys
     for cap in (sites + 50, max(sites // 2, 1)):  # holds them all; overflows
-        keys, vid, count, feats = _group_torch(vox, sorted_key, order, base, cap)
+        keys, vid, count, feats = group_torch(vox, sorted_key, order, base, cap)
         g_keys, g_vid, g_count, g_feats = group_sorted(sorted_key, order, base, cap)
         assert torch.equal(g_keys, keys) and torch.equal(g_vid, vid) and int(g_count) == int(count)
         rows = vid < cap  # the points of voxels that fit (the dump row's are cut off)

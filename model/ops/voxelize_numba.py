@@ -1,19 +1,20 @@
 """The fixed-shape voxelizer's per-point work as CPU kernels (numba), torch custom ops.
 
-Twins of the torch code in `model.graph.voxelize` (`_point_keys_torch`, `_group_torch`), which inductor
+Twins of the torch code in `model.graph.voxelize` (`point_keys_torch`, `group_torch`; `voxelize_fixed`
+dispatches between them by `numba_support.numba_kernel`'s rule), which inductor
 turns into scalar loops that recompute hypot and atan2 several times per point (~3 ms of a `tiny` step on
 the 2-core machine). Here:
 
 - `point_keys`: padded points (B, Np, C) -> each point's voxel key (SENTINEL unless kept), its base rows
-  (raw columns, r, the three centre offsets, theta; `PolarVoxelizer._base` and `_bin`) and the points kept
-  and out of range per stream, in one pass;
-- `group_sorted`: the keys sorted (outside, `model.graph.sort_cpu`) -> the compacted voxel keys, each
-  point's voxel row and the VFE input rows (`PolarVoxelizer._features`), in two passes.
+  (raw columns, r, the three centre offsets, theta; `PolarVoxelizer.base_rows` and `bin_rows`) and the
+  points kept and out of range per stream, in one pass;
+- `group_sorted`: the keys sorted (outside, `model.ops.sort`) -> the compacted voxel keys, each
+  point's voxel row and the VFE input rows (`PolarVoxelizer.vfe_input`), in two passes.
 
 Arithmetic is float32 step by step as in the eager voxelizer, and hypot and atan2 are aten's (called in
 the op, out of inductor's reach: its code calls the C library's), so voxel indices agree exactly; sums run
 in another order than index_add's, so features agree to float rounding. One thread and numba, for
-the reasons given in `model.graph.scan_cpu`.
+the reasons given in `model.ops.scan_numba`.
 """
 
 from __future__ import annotations
@@ -25,10 +26,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from model.graph.sites import SENTINEL
-from model.layers.voxelize import EXTRA_FEATURES, PolarVoxelizer
+from model.config import PolarGridConfig
+from model.geometry.sparse_tensor import SENTINEL
 
 f32 = np.float32
+GROUP_EXTRA = 4  # VFE input rows beyond the base rows: sin, cos and the three offsets from the voxel's mean
 
 
 @numba.njit(cache=True, nogil=True)
@@ -164,7 +166,7 @@ def group_sorted(
     keys (cap,) int64, vid (n,) int64, count () int64 (`compact_sorted`'s), feats (P + 9, n) float32."""
     n = sorted_key.shape[0]
     keys, vid = torch.empty(cap, dtype=torch.int64), torch.empty(n, dtype=torch.int64)
-    feats = torch.empty(base.shape[0] - 5 + EXTRA_FEATURES, n, dtype=torch.float32)
+    feats = torch.empty(base.shape[0] + GROUP_EXTRA, n, dtype=torch.float32)
     arrays = (sorted_key.contiguous(), order.contiguous(), base.contiguous())
     count = _group_sorted(*(a.numpy() for a in arrays), cap, keys.numpy(), vid.numpy(), feats.numpy())
     return keys, vid, torch.tensor(count, dtype=torch.int64), feats
@@ -174,11 +176,11 @@ def group_sorted(
 def _(sorted_key, order, base, cap):
     n = sorted_key.shape[0]
     long = torch.int64
-    feats = base.new_empty(base.shape[0] - 5 + EXTRA_FEATURES, n)
+    feats = base.new_empty(base.shape[0] + GROUP_EXTRA, n)
     return sorted_key.new_empty(cap), sorted_key.new_empty(n), sorted_key.new_empty((), dtype=long), feats
 
 
-def grid_args(vox: PolarVoxelizer) -> tuple[list[float], list[int]]:
-    """The voxelizer's grid as `point_keys` takes it."""
-    g = vox.grid
-    return [g.r_min, g.r_max, g.r_size, g.theta_size, g.z_min, g.z_max, g.z_size], list(vox.spatial_shape)
+def grid_args(g: PolarGridConfig) -> tuple[list[float], list[int]]:
+    """A voxelizer's grid as `point_keys` takes it."""
+    shape = [g.r_bins, g.theta_bins, g.z_bins]
+    return [g.r_min, g.r_max, g.r_size, g.theta_size, g.z_min, g.z_max, g.z_size], shape

@@ -1,5 +1,5 @@
 """A stable sort of the step's int64 keys as a CPU kernel (numba), a torch custom op: the fast twin of
-`torch.sort(keys, stable=True)`.
+`torch.sort(keys, stable=True)` (`model.ops.sort` dispatches).
 
 The step sorts linear site keys: the voxelizer its points' keys, a strided conv its candidate output keys.
 Real keys are small (below the batch's cell count: 2^19 cells a stream for `tiny`) and padding holds
@@ -8,7 +8,7 @@ and the rest take an LSD radix sort over only the bits their largest key has (11
 for up to eight `tiny` streams):
 0.09 against 0.55-1.35 ms for 26-41k keys on the 2-core machine. Stable, so the order is torch's exactly;
 negative keys (never made by the step) go through torch.sort. One thread and numba, for the reasons given
-in `model.graph.scan_cpu`.
+in `model.ops.scan_numba`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from model.graph.sites import SENTINEL
+from model.geometry.sparse_tensor import SENTINEL
 
 DIGIT = 11  # bits per radix pass
 
@@ -72,7 +72,7 @@ def _radix_sort(keys, last, values, order):  # pragma: no cover - compiled
 
 
 @torch.library.custom_op("phim::sort_keys", mutates_args=(), device_types="cpu")
-def sort_keys_op(keys: Tensor) -> tuple[Tensor, Tensor]:
+def sort_keys_numba(keys: Tensor) -> tuple[Tensor, Tensor]:
     """keys (n,) int64 -> (values, order) = torch.sort(keys, stable=True)."""
     values, order = torch.empty_like(keys), torch.empty_like(keys)
     if not _radix_sort(keys.contiguous().numpy(), SENTINEL, values.numpy(), order.numpy()):
@@ -80,13 +80,6 @@ def sort_keys_op(keys: Tensor) -> tuple[Tensor, Tensor]:
     return values, order
 
 
-@sort_keys_op.register_fake
+@sort_keys_numba.register_fake
 def _(keys):
     return keys.new_empty(keys.shape), keys.new_empty(keys.shape)
-
-
-def sort_keys(keys: Tensor) -> tuple[Tensor, Tensor]:
-    """torch.sort(keys, stable=True) for (n,) int64 keys, through the kernel on CPU tensors."""
-    if keys.device.type != "cpu":
-        return torch.sort(keys, stable=True)
-    return sort_keys_op(keys)

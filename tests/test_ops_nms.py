@@ -1,4 +1,4 @@
-"""The numba greedy NMS (model/geometry/nms_cpu.py, every CPU NMS) against its torch twin (GPU tensors),
+"""The numba greedy NMS (model/ops/nms_numba.py, every CPU NMS) against its torch twin (GPU tensors),
 kept index for kept index; tests/test_boxes.py holds both against an independent shapely reference. The
 batch kernel (`class_nms_batch_cpu`, every CPU `select_detections`) against `class_nms` item by item
 (`select_detections_plain`)."""
@@ -13,8 +13,8 @@ from test_boxes import clustered, rand_boxes
 from model.config import HeadConfig
 from model.geometry.boxes import Detections
 from model.geometry.nms import _grouped_nms_torch
-from model.geometry.nms_cpu import grouped_nms_cpu
 from model.layers.head import Candidates, select_detections, select_detections_plain
+from model.ops.nms_numba import grouped_nms_cpu
 
 
 def _both(b: np.ndarray, s: np.ndarray, groups: np.ndarray, thresholds: tuple, max_out: int, dtype):

@@ -3,7 +3,7 @@ answered sector, its points and its boxes, to Foxglove (the app or the desktop) 
 
 Serving never waits for it. The worker's device thread calls `observe`, which only puts (sector, reply) on a
 bounded queue with `put_nowait`: a full queue drops the sector (counted in `phim_live_view_dropped_total`).
-A thread of its own turns them into Foxglove messages (`phim.scene`) and logs them on the stream's channels,
+A thread of its own turns them into Foxglove messages (`ros.scene`) and logs them on the stream's channels,
 made with the stream's first sector: `/phim/{stream_id}/points` (foxglove.PointCloud) and
 `/phim/{stream_id}/boxes` (foxglove.SceneUpdate). A sector nobody subscribed to is not drawn at all; the
 Foxglove server sends a client only what it subscribed to and drops the oldest for a slow client.
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from contract import DetectionsReply, SectorMessage
-from phim.scene import SceneChannels
+from ros.scene import SceneChannels
 
 if TYPE_CHECKING:
     import foxglove

@@ -1,10 +1,10 @@
 """The polar->BEV scatter-mean of the fixed-shape step as a CPU kernel (numba), a torch custom op.
 
-Its plain twin is `model.graph.bev.polar_to_bev_fixed`; the step uses this one on the CPU and the twin
-elsewhere (the parity tests hold them equal). The twin scatters every buffered row once per cell it feeds
+Its plain twin is `model.ops.bev_mean.bev_mean_torch`; `bev_mean` there dispatches (the parity tests hold
+them equal). The twin scatters every buffered row once per cell it feeds
 through aten's scatter-reduce (an index expanded to the rows' shape, a product per pair first): 3.6 ms of a
 `tiny` step on the 2-core machine. Here one pass adds each valid row into its cells and a second divides by
-the counts: 0.35-0.55 ms. One thread, like the scan (`model.graph.scan_cpu`), numba for the reasons given
+the counts: 0.35-0.55 ms. One thread, like the scan (`model.ops.scan_numba`), numba for the reasons given
 there; sums run in another order than the twin's, so results agree to float rounding. A custom op so that
 torch.compile calls it as one opaque op (dynamo cannot trace numba); it exists for CPU tensors only.
 """
@@ -48,10 +48,8 @@ def _bev_mean(feats, column, valid, table, cells_per_item, out):  # pragma: no c
 
 
 @torch.library.custom_op("phim::bev_mean", mutates_args=(), device_types="cpu")
-def bev_mean(feats: Tensor, column: Tensor, valid: Tensor, table: Tensor, ny: int, nx: int) -> Tensor:
-    """feats (B, L, C), column (B, L) int64 (r * THETA + theta), valid (B, L) bool, table from
-    `model.graph.bev.dense_cell_table` -> (B, ny, nx, C) in feats' dtype: each cell the mean of the valid rows
-    whose column feeds it, zero where none does."""
+def bev_mean_numba(feats: Tensor, column: Tensor, valid: Tensor, table: Tensor, ny: int, nx: int) -> Tensor:
+    """`bev_mean`'s contract on CPU tensors."""
     cd = torch.float64 if feats.dtype == torch.float64 else torch.float32
     out = torch.empty(feats.shape[0] * ny * nx, feats.shape[2], dtype=cd)
     arrays = (feats.to(cd).contiguous(), column.contiguous(), valid.contiguous(), table.contiguous())
@@ -59,6 +57,6 @@ def bev_mean(feats: Tensor, column: Tensor, valid: Tensor, table: Tensor, ny: in
     return out.view(feats.shape[0], ny, nx, -1).to(feats.dtype)
 
 
-@bev_mean.register_fake
+@bev_mean_numba.register_fake
 def _(feats, column, valid, table, ny, nx):
     return feats.new_empty(feats.shape[0], ny, nx, feats.shape[2])

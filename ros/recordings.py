@@ -4,7 +4,7 @@ A recording is a rosbag2 folder (metadata.yaml beside MCAP or sqlite3 storage fi
 storage file on its own: a `.db3` (rosbags) or a `.mcap` (the `mcap` library: rosbag2's, or one written by
 any tool with ros2msg schemas and CDR messages, whatever its profile). Only the PointCloud2 messages of one
 topic are read, in log order; every other topic is skipped. Each message's points are decoded by its own
-field layout (lidar.pointcloud2), its spin is detected from the points, its time is the header stamp
+field layout (ros.pointcloud2), its spin is detected from the points, its time is the header stamp
 (the log time when the stamp is zero).
 
 Numpy only at import time: rosbags and mcap are imported when a recording is opened (`pip install
@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 from contract import REQUIRED_FIELDS
-from lidar.pointcloud2 import POINTCLOUD2, cloud_spin, decode_pointcloud2, pointcloud2_points, stamp_ns
 from lidar.readers import Scan
+from ros.pointcloud2 import POINTCLOUD2, cloud_spin, decode_pointcloud2, pointcloud2_points, stamp_ns
 
 RECORDING_SUFFIXES = (".mcap", ".db3")
 
@@ -103,7 +103,7 @@ def choose_topic(path: Path, topic: str | None = None) -> str:
 
 def read_recording(path: Path, topic: str | None = None, intensity_scale: float = 1.0) -> Iterator[Scan]:
     """The PointCloud2 messages of `topic` (see `choose_topic`) -> one Scan per message, in log order:
-    (N, 4) float32 x, y, z, intensity * `intensity_scale` (lidar.pointcloud2 says which scale a
+    (N, 4) float32 x, y, z, intensity * `intensity_scale` (ros.pointcloud2 says which scale a
     driver needs), named by their index ('000000', ...).
 
     The topic is checked now (ValueError before anything is read); the messages are read as the iterator

@@ -1,5 +1,5 @@
 """The sparse convs over neighbour tables as a CPU kernel that multiplies only the table's entries naming a
-row, a torch custom op: the fast twin of `model.graph.sparse_conv.conv_gemm` (the implicit GEMM).
+row, a torch custom op: the fast twin of `model.ops.table_conv.table_conv_torch` (the implicit GEMM).
 
 The implicit GEMM multiplies every (row, kernel offset) entry of a table, and most are empty: in a `tiny`
 step on KITTI 9-36 % name a row, so it does three to ten times the FLOPs the conv needs. Here one pass
@@ -63,9 +63,9 @@ def _add_rows(y, outs, out):  # pragma: no cover - compiled
             out[o, c] += y[p, c]
 
 
-@torch.library.custom_op("phim::conv_pairs", mutates_args=(), device_types="cpu")
-def conv_pairs(x: Tensor, table: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-    """`conv_gemm`'s contract: x (cap_in, C_in), table (cap_out, KK) in [0, cap_in] (cap_in: none), weight
+@torch.library.custom_op("phim::table_conv", mutates_args=(), device_types="cpu")
+def table_conv_numba(x: Tensor, table: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+    """`table_conv`'s contract: x (cap_in, C_in), table (cap_out, KK) in [0, cap_in] (cap_in: none), weight
     (KK, C_in, C_out), bias (C_out,) or None -> (cap_out, C_out) in x's dtype."""
     cap_out, kk = table.shape
     cd = torch.float64 if x.dtype == torch.float64 else torch.float32
@@ -95,6 +95,6 @@ def conv_pairs(x: Tensor, table: Tensor, weight: Tensor, bias: Tensor | None) ->
     return out.to(x.dtype)
 
 
-@conv_pairs.register_fake
+@table_conv_numba.register_fake
 def _(x, table, weight, bias):
     return x.new_empty(table.shape[0], weight.shape[2])
