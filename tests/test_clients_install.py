@@ -18,7 +18,18 @@ from contract import REQUIRED_FIELDS
 from lidar.readers import write_native_scan
 from lidar.synthetic import synthetic_turn
 
-SOURCES = ("pyproject.toml", "README.md", "LICENSE", "contract", "phim", "model", "server", "clients")
+SOURCES = (
+    "pyproject.toml",
+    "README.md",
+    "LICENSE",
+    "contract",
+    "lidar",
+    "ros",
+    "phim",
+    "model",
+    "server",
+    "clients",
+)
 CLIENT_CODE = """
 from clients.http_client import HttpClient
 from lidar.sectorizer import split_scan
