@@ -65,3 +65,25 @@ def test_both_engines_drop_the_ego_vehicles_points(engine: type[StreamingDetecto
         outs.append(r)
     torch.testing.assert_close(outs[0].detections.boxes, outs[1].detections.boxes)
     assert outs[0].points_kept == outs[1].points_kept
+
+
+def test_a_compiled_graph_engine_may_compile_a_graph_per_bucket_in_the_thread_that_runs_it() -> None:
+    """torch.compile's recompile limit (8) is per thread: the thread that meets a new bucket (a server's
+    device thread, not the one that built the engine) must allow one graph per bucket (2 x 6 buckets > 8)."""
+    import threading
+
+    from model.graph.step import Capacity
+
+    engine, _ = build_engine(EngineSettings(device="cpu", engine=Engine.GRAPH, slots=2))
+    assert isinstance(engine, GraphStreamingDetector) and engine.compiled
+    seen: list[int] = []
+
+    def device_thread() -> None:
+        seen.append(torch._dynamo.config.recompile_limit)
+        engine._runner(1, Capacity(points=1, voxels=1, coarse=()))  # a new bucket
+        seen.append(torch._dynamo.config.recompile_limit)
+
+    thread = threading.Thread(target=device_thread)
+    thread.start()
+    thread.join()
+    assert seen[0] == 8 and seen[1] >= 2 * len(BATCH_BUCKETS), seen

@@ -97,8 +97,6 @@ class GraphStreamingDetector(EngineBase):
         self._compiled: set[tuple[int, Capacity]] = set()  # buckets the compiled step has run
         self._uncompiled: set[tuple[int, Capacity]] = set()  # buckets run op by op after seal()
         if compile:
-            cfg = torch._dynamo.config
-            cfg.recompile_limit = max(cfg.recompile_limit, 64)  # one graph per bucket
             # on CUDA each bucket's graph is captured as a CUDA graph and replayed (mode "reduce-overhead"):
             # its outputs are overwritten by the next replay, and by then the step has copied them out (the
             # host tensor to the host, the new states into their slots); on the CPU the code that calls the
@@ -277,6 +275,7 @@ class GraphStreamingDetector(EngineBase):
                 )
             return self.step_module
         self._compiled.add((batch, cap))
+        _allow_bucket_graphs()  # a new bucket compiles here, in the calling thread
         return self._run
 
     @torch.inference_mode()
@@ -401,6 +400,13 @@ class GraphStreamingDetector(EngineBase):
             for d, s, st in zip(dets, states, stats, strict=True)
         ]
         return results, buffers
+
+
+def _allow_bucket_graphs() -> None:
+    """torch.compile's recompile limit (default 8) is a per-thread setting and the step compiles one graph per
+    (batch, capacity) bucket in whichever thread runs it (a server's device thread): raise it there."""
+    cfg = torch._dynamo.config
+    cfg.recompile_limit = max(cfg.recompile_limit, 64)
 
 
 def _live_module_tree(entries: list) -> list[bool]:
