@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from model.config import HeadingCode, PHiMConfig, get_config, tiny
+from model.config import PHiMConfig, get_config, tiny
 from model.detector import PHiM
 
 FORMAT = "phim-checkpoint"
@@ -120,20 +120,12 @@ VFE_INPUT = "voxelizer.layers.0.linear.weight"
 
 def init_weights(path: str | Path, cfg: PHiMConfig) -> dict[str, torch.Tensor]:
     """The weights of checkpoint `path` as the start of a model of config `cfg`. The checkpoint's config must
-    be cfg's, but for two changes:
-    - reading fewer point columns (`vfe.point_features`): the weights of the columns cfg does not read are
-      left out, so the new model starts as the old one with those columns zero;
-    - the axis_vector heading code from axis_direction: the head keeps its axis channels, and the (sin yaw,
-      cos yaw) channels that replace the direction logit start at zero (decoded as the axis angle).
-    A box refiner's weights are left out too: `phim train` trains the detector, `phim train-refiner` the
-    refiner after it."""
+    be cfg's, but for reading more point columns (`vfe.point_features`): the weights of the columns cfg does
+    not read are left out, so the new model starts as the old one with those columns zero. A box refiner's
+    weights are left out too: `phim train` trains the detector, `phim train-refiner` the refiner after it."""
     model = load_checkpoint(path)
     have, want = model.cfg.vfe.point_features, cfg.vfe.point_features
-    codes = (model.cfg.head.heading, cfg.head.heading)
-    new_end = codes == (HeadingCode.AXIS_DIRECTION, HeadingCode.AXIS_VECTOR)
     expected = replace(cfg.reading(have), refine=model.cfg.refine)
-    if new_end:
-        expected = expected.with_heading(HeadingCode.AXIS_DIRECTION)
     diff = config_diff(plain_config(model.cfg), plain_config(expected))
     if want > have:
         diff.append(f"vfe.point_features: checkpoint has {have}, expected at least {want}")
@@ -142,11 +134,6 @@ def init_weights(path: str | Path, cfg: PHiMConfig) -> dict[str, torch.Tensor]:
     state = {k: v for k, v in model.state_dict().items() if not k.startswith("refiner.")}
     w = state[VFE_INPUT]  # (hidden, have + 9)
     state[VFE_INPUT] = torch.cat([w[:, :want], w[:, have:]], 1)  # (hidden, want + 9)
-    if new_end:
-        last = f"head.rot.{cfg.head.head_convs - 1}"  # the rot branch's output conv: (3, C, 3, 3) -> (4, ...)
-        for key in (f"{last}.weight", f"{last}.bias"):
-            axis = state[key][:2]
-            state[key] = torch.cat([axis, torch.zeros_like(axis)])
     return state
 
 

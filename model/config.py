@@ -60,10 +60,6 @@ class HeadingCode(enum.StrEnum):
     # direction logit (> 0: yaw within 90 degrees of the axis angle in (-90, 90]), as SECOND's direction
     # classifier
     AXIS_DIRECTION = "axis_direction"
-    # (sin 2 yaw, cos 2 yaw) regressed for the axis, plus (sin yaw, cos yaw) regressed to choose its end:
-    # continuous all round the circle, where the direction logit must jump as the axis angle wraps at +-90
-    # degrees (objects crossing the sensor's x axis)
-    AXIS_VECTOR = "axis_vector"
 
 
 @dataclass(frozen=True)
@@ -241,10 +237,6 @@ class PHiMConfig:
     def reading(self, point_features: int) -> PHiMConfig:
         """This config reading the first `point_features` point columns (3: x, y, z, no intensity)."""
         return replace(self, vfe=replace(self.vfe, point_features=point_features))
-
-    def with_heading(self, heading: HeadingCode) -> PHiMConfig:
-        """This config with the head encoding yaw as `heading`."""
-        return replace(self, head=replace(self.head, heading=heading))
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -123,32 +123,3 @@ def test_init_weights_leave_out_the_columns_a_model_does_not_read(tmp_path):
         init_weights(tmp_path / "four.pt", four.cfg.reading(5))
     with pytest.raises(CheckpointError, match="buffer_sectors"):
         init_weights(tmp_path / "four.pt", dataclasses.replace(three.cfg, buffer_sectors=2))
-
-
-def test_init_weights_start_an_axis_vector_head_from_an_axis_direction_one(tmp_path):
-    """The axis_vector code from an axis_direction checkpoint: every weight carries over but the rot
-    branch's output conv, which keeps the axis channels and starts (sin yaw, cos yaw) at zero, so the new
-    head decodes its boxes along the old axis; other heading changes are refused."""
-    from model.checkpoint import init_weights
-    from model.layers.head import decode_yaw
-
-    old = PHiM(tiny())
-    for p in old.parameters():
-        p.data.normal_()
-    save_checkpoint(tmp_path / "old.pt", old)
-    new = PHiM(tiny().with_heading(HeadingCode.AXIS_VECTOR))
-    new.load_state_dict(init_weights(tmp_path / "old.pt", new.cfg))
-    last = "head.rot.0"
-    before, after = old.state_dict(), new.state_dict()
-    for key in before:
-        if key.startswith(last):
-            assert after[key].shape[0] == 4 and torch.equal(after[key][:2], before[key][:2]), key
-            assert not after[key][2:].any(), key
-        else:
-            assert torch.equal(after[key], before[key]), key
-    axis = torch.linspace(-1.5, 1.5, 7)  # sin 2a, cos 2a of these axis angles, the end channels zero
-    rot = [torch.sin(2 * axis), torch.cos(2 * axis), torch.zeros(7), torch.zeros(7)]
-    torch.testing.assert_close(decode_yaw(rot, HeadingCode.AXIS_VECTOR), axis)
-    save_checkpoint(tmp_path / "sin_cos.pt", PHiM(tiny().with_heading(HeadingCode.SIN_COS)))
-    with pytest.raises(CheckpointError, match="heading"):
-        init_weights(tmp_path / "sin_cos.pt", new.cfg)

@@ -14,7 +14,7 @@ from lidar.readers import sector_of_xy
 from lidar.synthetic import synthetic_turn
 from lidar.types import GroundTruth, LabeledScan, points_in_boxes
 from model.config import HeadingCode, tiny
-from model.layers.head import HeadOutput, decode, decode_yaw, decoded_boxes, encode_yaw, rot_channels
+from model.layers.head import HeadOutput, decode, decode_yaw, decoded_boxes, encode_yaw
 from model.layers.head_targets import TargetConfig, build_targets, gaussian_radius
 from model.train.data import AugmentConfig, SampleConfig, augment, make_sample
 from model.train.loss import LossConfig, center_loss, focal_loss
@@ -49,21 +49,12 @@ def test_targets_decode_back_to_the_boxes():
     assert t.heatmap.max() == 1.0 and (t.heatmap == 1.0).sum() == 4
 
 
-def _end_channels(end: torch.Tensor | None) -> list[torch.Tensor]:
-    """encode_yaw's end-of-axis targets -> the head channels that predict them exactly (a direction target
-    in {0, 1} as a logit of +-20, a (sin, cos) target as itself)."""
-    if end is None:
-        return []
-    return [end * 40 - 20] if end.dim() == 1 else [*end.unbind(1)]
-
-
 @pytest.mark.parametrize("code", list(HeadingCode))
 def test_yaw_encodes_and_decodes_all_round_the_circle(code: HeadingCode):
     yaw = torch.cat([torch.linspace(-math.pi, math.pi, 721, dtype=torch.float64), torch.tensor([0.3, -2.0])])
     rot, direction = encode_yaw(yaw, code)
     assert (direction is None) == (code is HeadingCode.SIN_COS)
-    parts = [*rot.unbind(1), *_end_channels(direction)]
-    assert len(parts) == rot_channels(code)
+    parts = [*rot.unbind(1)] + ([] if direction is None else [direction * 40 - 20])  # logits +-20
     back = decode_yaw(parts, code)
     wrapped = torch.remainder(back - yaw + math.pi, 2 * math.pi) - math.pi
     assert wrapped.abs().max() < 1e-9
@@ -77,8 +68,10 @@ def _perfect_output(targets, code: HeadingCode) -> HeadOutput:
     cells = torch.from_numpy(t.index)
     hm.view(1, k, -1)[0, torch.from_numpy(t.labels), cells] = 20.0
     rot, direction = encode_yaw(torch.from_numpy(t.boxes[:, 6]), code)
-    ends = [x[:, None] for x in _end_channels(direction)]
-    values = torch.cat([torch.from_numpy(t.reg[:, :6]), rot, *ends], 1)  # (T, 6 + R)
+    values = [torch.from_numpy(t.reg[:, :6]), rot] + (
+        [] if direction is None else [direction[:, None] * 40 - 20]
+    )
+    values = torch.cat(values, 1)  # (T, 6 + R)
     reg = torch.zeros(1, values.shape[1], h * w)
     reg[0, :, cells] = values.T
     reg = reg.view(1, -1, h, w)
@@ -103,9 +96,9 @@ def test_perfect_head_output_decodes_to_the_boxes_and_has_a_small_loss(code: Hea
     if code is HeadingCode.SIN_COS:
         turned = -turned  # (-sin, -cos): yaw + pi
     else:
-        turned[:, 2:] *= -1  # the direction logit, or (sin, cos) for axis_vector
+        turned[:, 2] *= -1  # the direction logit
     flipped = HeadOutput(out.heatmap, out.offset, out.z, out.log_dim, turned, out.iou)
-    parts = center_loss(flipped, [t], CFG.bev, code, LossConfig(direction_weight=1.0))
+    parts = center_loss(flipped, [t], CFG.bev, code, LossConfig())
     assert parts.reg > 0.5 and parts.mean_iou > 0.999  # the wrong way round costs, though the IoU is the same
 
 

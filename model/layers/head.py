@@ -38,14 +38,12 @@ class HeadOutput:
     offset: Tensor  # (B, 2, H, W) sub-cell centre offset in cells (x, y), from the cell's lower-left corner
     z: Tensor  # (B, 1, H, W) box centre z, metres
     log_dim: Tensor  # (B, 3, H, W) log of (l, w, h) in metres
-    # (B, R, H, W) sin_cos: (sin yaw, cos yaw); axis_direction: (sin 2yaw, cos 2yaw, dir logit);
-    # axis_vector: (sin 2yaw, cos 2yaw, sin yaw, cos yaw)
-    rot: Tensor
+    rot: Tensor  # (B, R, H, W) sin_cos: (sin yaw, cos yaw); axis_direction: (sin 2yaw, cos 2yaw, dir logit)
     iou: Tensor  # (B, 1, H, W) predicted IoU in [-1, 1] before rectification (target 2 * iou - 1)
 
 
 def rot_channels(code: HeadingCode) -> int:
-    return {HeadingCode.SIN_COS: 2, HeadingCode.AXIS_DIRECTION: 3, HeadingCode.AXIS_VECTOR: 4}[code]
+    return 2 if code is HeadingCode.SIN_COS else 3
 
 
 def _axis(sin2: Tensor, cos2: Tensor) -> Tensor:
@@ -57,25 +55,18 @@ def decode_yaw(rot: Sequence[Tensor], code: HeadingCode) -> Tensor:
     if code is HeadingCode.SIN_COS:
         sin, cos = rot
         return torch.atan2(sin, cos)
-    sin2, cos2, *end = rot
+    sin2, cos2, direction = rot
     axis = _axis(sin2, cos2)
     turned = torch.where(axis > 0, axis - math.pi, axis + math.pi)  # the other way along the axis
-    if code is HeadingCode.AXIS_DIRECTION:
-        agree = end[0]  # the direction logit
-    else:  # the axis's end that the regressed (sin yaw, cos yaw) points to
-        agree = torch.sin(axis) * end[0] + torch.cos(axis) * end[1]
-    return torch.where(agree >= 0, axis, turned)
+    return torch.where(direction >= 0, axis, turned)
 
 
 def encode_yaw(yaw: Tensor, code: HeadingCode) -> tuple[Tensor, Tensor | None]:
-    """yaw (T,) -> the regressed rot targets (T, 2) and what picks the axis's end: None for sin_cos; for
-    axis_direction the direction targets (T,) in {0, 1} (1: yaw is the axis angle `decode_yaw` computes,
-    0: the opposite way), learnt as a logit; for axis_vector (sin yaw, cos yaw) (T, 2), regressed."""
+    """yaw (T,) -> the regressed rot targets (T, 2) and, for axis_direction, the direction targets (T,) in
+    {0, 1} (1: yaw is the axis angle `decode_yaw` computes, 0: the opposite way)."""
     if code is HeadingCode.SIN_COS:
         return torch.stack([torch.sin(yaw), torch.cos(yaw)], 1), None
     sin2, cos2 = torch.sin(2 * yaw), torch.cos(2 * yaw)
-    if code is HeadingCode.AXIS_VECTOR:
-        return torch.stack([sin2, cos2], 1), torch.stack([torch.sin(yaw), torch.cos(yaw)], 1)
     direction = (torch.cos(yaw - _axis(sin2, cos2)) > 0).to(yaw.dtype)
     return torch.stack([sin2, cos2], 1), direction
 

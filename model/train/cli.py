@@ -8,7 +8,6 @@ from pathlib import Path
 import click
 
 from lidar.selection import ClassMap, Split
-from model.config import HeadingCode
 from model.tools.options import (
     class_map_option,
     config_option,
@@ -53,14 +52,7 @@ def _int(name: str, default: int, minimum: int, help_text: str):
     type=float,
     default=LossConfig.direction_weight,
     show_default=True,
-    help="Weight of the loss on the axis's end (the axis_direction and axis_vector heading codes).",
-)
-@click.option(
-    "--heading",
-    type=click.Choice([str(c) for c in HeadingCode]),
-    default=None,
-    help="The head's yaw code. Default: the config's own (an axis_direction --init checkpoint starts an "
-    "axis_vector head from its axis channels).",
+    help="Weight of the direction classifier's loss (axis_direction heading code).",
 )
 @click.option(
     "--point-features",
@@ -68,12 +60,6 @@ def _int(name: str, default: int, minimum: int, help_text: str):
     default=None,
     help="Point columns the model reads (x, y, z, intensity, elongation); 3 drops intensity. Default: the "
     "config's own (an --init checkpoint reading more starts without those columns' weights).",
-)
-@click.option(
-    "--trainable",
-    multiple=True,
-    help="Train only the parameters whose names start so (repeatable), e.g. head.rot to teach a trained "
-    "detector a new --heading code; the rest keep their weights and batch-norm statistics. Default: all.",
 )
 @device_option()
 @threads_option
@@ -102,8 +88,6 @@ def train_cmd(
     init: str,
     direction_weight: float,
     point_features: int | None,
-    heading: str | None,
-    trainable: tuple[str, ...],
     device: str,
     threads: int,
     progress: bool,
@@ -136,14 +120,12 @@ def train_cmd(
             init=str(checkpoint_path(init)) if init else "",
             loss=LossConfig(direction_weight=direction_weight),
             point_features=point_features or 0,
-            heading=heading or "",
-            trainable=tuple(trainable),
         )
         scan_source(cfg.data, cfg.seed, classes=class_map)  # custom:DIR: every label file parses
     except ValueError as e:
         raise click.BadParameter(str(e), param_hint="--data / --class-map / --init") from None
     try:
         path = train(cfg, out, resume=resume, device=device, progress=progress, max_minutes=max_minutes)
-    except (CustomDataError, ValueError) as e:  # a points file found bad when read; --resume; --trainable
+    except CustomDataError as e:  # a points file found bad when read (NaN, intensity range)
         raise click.ClickException(str(e)) from None
     click.echo(f"model: {path}")

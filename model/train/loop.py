@@ -29,7 +29,7 @@ from lidar.datasets import DataKind, parse_data_spec
 from lidar.selection import ClassMap, parse_class_map
 from lidar.sources import scan_source
 from model.checkpoint import init_weights, save_checkpoint
-from model.config import POINT_FIELDS, HeadingCode, PHiMConfig, get_config
+from model.config import POINT_FIELDS, PHiMConfig, get_config
 from model.detector import PHiM
 from model.train.data import SampleConfig, SampleStream, TrainSample
 from model.train.distributed import Dist
@@ -61,12 +61,6 @@ class TrainConfig:
     # point columns the model reads (x, y, z, intensity[, elongation]); 0: the config's own. 3 drops intensity
     # (docs/model.md); an `init` checkpoint reading more columns starts with their weights left out
     point_features: int = 0
-    # the head's yaw code (a HeadingCode value); "": the config's own. An `init` checkpoint with the
-    # axis_direction code starts an axis_vector head from its axis channels
-    heading: str = ""
-    # parameter-name prefixes that train (e.g. "head.rot"); (): all. The rest keep their weights and their
-    # batch norms' running statistics (`freeze_all_but`)
-    trainable: tuple[str, ...] = ()
     checkpoint_every: int = 200
     log_every: int = 10
     sample: SampleConfig = field(default_factory=SampleConfig)
@@ -75,8 +69,6 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.point_features and not 3 <= self.point_features <= len(POINT_FIELDS):
             raise ValueError(f"point_features: {self.point_features}; expected 0 or 3..{len(POINT_FIELDS)}")
-        if self.heading not in ("", *HeadingCode):
-            raise ValueError(f"heading {self.heading!r}: expected one of {', '.join(HeadingCode)}")
         kind = parse_data_spec(self.data).kind
         if parse_class_map(self.class_map) != ClassMap() and kind is not DataKind.CUSTOM:
             raise ValueError(f"class_map {self.class_map!r}: applies to custom:DIR data only")
@@ -87,26 +79,9 @@ class TrainConfig:
             )
 
     def model_config(self) -> PHiMConfig:
-        """The model config the run trains: `config`, reading `point_features` columns and with the `heading`
-        code when set."""
+        """The model config the run trains: `config`, reading `point_features` columns when set."""
         cfg = get_config(self.config)
-        cfg = cfg.reading(self.point_features) if self.point_features else cfg
-        return cfg.with_heading(HeadingCode(self.heading)) if self.heading else cfg
-
-
-def freeze_all_but(model: nn.Module, prefixes: tuple[str, ...]) -> None:
-    """Only the parameters whose names start with one of `prefixes` train: the others get no gradients,
-    and the batch norms outside them keep their running statistics (eval mode), so what is frozen computes
-    exactly as before. A prefix that names no parameter is an error."""
-    names = [name for name, _ in model.named_parameters()]
-    unknown = [p for p in prefixes if not any(n.startswith(p) for n in names)]
-    if unknown:
-        raise ValueError(f"trainable {', '.join(unknown)}: no parameter of the model starts so")
-    for name, param in model.named_parameters():
-        param.requires_grad_(name.startswith(prefixes))
-    for name, module in model.named_modules():
-        if isinstance(module, nn.modules.batchnorm._BatchNorm) and not name.startswith(prefixes):
-            module.eval()
+        return cfg.reading(self.point_features) if self.point_features else cfg
 
 
 def _plain(cfg: TrainConfig) -> dict[str, Any]:
@@ -259,8 +234,6 @@ def train(
     if cfg.init and not resume:  # a resumed run has its own weights
         model.load_state_dict(init_weights(cfg.init, model.cfg))
         log.info("starting from the weights of %s", cfg.init)
-    if cfg.trainable:
-        freeze_all_but(model, cfg.trainable)
     step_fn: nn.Module = dist.wrap(TrainStep(model, cfg.loss))
     opt = make_optimizer(model, cfg.lr, cfg.weight_decay)
     start = 0

@@ -2,9 +2,8 @@
 
 - heatmap: CenterNet's penalty-reduced focal loss (alpha 2, beta 4), normalised by the number of centres;
 - regression: L1 on (offset x, offset y, z, log l, log w, log h, and the two regressed rot channels) at the
-  centre cells: (sin yaw, cos yaw), or (sin 2 yaw, cos 2 yaw) plus what picks the axis's end (weight
-  `direction_weight`, counted in the `reg` part): a direction logit under binary cross-entropy for the
-  axis_direction heading code, L1 on (sin yaw, cos yaw) for axis_vector;
+  centre cells: (sin yaw, cos yaw), or (sin 2 yaw, cos 2 yaw) plus a direction logit under binary
+  cross-entropy (weight `direction_weight`, counted in the `reg` part) for the axis_direction heading code;
 - IoU branch: L1 between the predicted IoU and 2 * IoU(decoded box, target) - 1 (the box detached);
 - IoU loss: 1 - 3D rotated IoU of the decoded box with its target (gradients into the box regression).
 """
@@ -31,7 +30,7 @@ class LossConfig:
     iou_branch_weight: float = 1.0
     iou_loss_weight: float = 1.0
     code_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
-    direction_weight: float = 0.2  # the axis's end (axis_direction: SECOND's direction classifier, 0.2)
+    direction_weight: float = 0.2  # axis_direction heading only (SECOND's direction classifier: 0.2)
 
 
 @dataclass(frozen=True)
@@ -71,14 +70,12 @@ def center_loss(
     reg_target = torch.from_numpy(np.concatenate([t.reg for t in targets])).to(dev)  # (T, 8)
     box_target = torch.from_numpy(np.concatenate([t.boxes for t in targets])).to(dev)  # (T, 7)
     reg = regression_at(out, flat)  # (T, 6 + R)
-    rot_target, end = encode_yaw(box_target[:, 6], heading)  # (T, 2); (T,), (T, 2) or None
+    rot_target, direction = encode_yaw(box_target[:, 6], heading)  # (T, 2), (T,) or None
     reg_target = torch.cat([reg_target[:, :6], rot_target], 1)  # (T, 8): yaw part in the head's code
     weights = reg.new_tensor(cfg.code_weights)
     reg_loss = ((reg[:, :8] - reg_target).abs() * weights).sum() / n
-    if heading is HeadingCode.AXIS_DIRECTION:
-        reg_loss = reg_loss + cfg.direction_weight * F.binary_cross_entropy_with_logits(reg[:, 8], end)
-    elif heading is HeadingCode.AXIS_VECTOR:
-        reg_loss = reg_loss + cfg.direction_weight * (reg[:, 8:10] - end).abs().sum() / n
+    if direction is not None:
+        reg_loss = reg_loss + cfg.direction_weight * F.binary_cross_entropy_with_logits(reg[:, 8], direction)
     boxes = decoded_boxes(reg, flat, w, h, bev, heading)  # (T, 7)
     iou = rotated_iou_3d_aligned(boxes, box_target).clamp(0.0, 1.0)  # (T,)
     iou_pred = gather_cells(out.iou, flat)[:, 0]  # (T,)
