@@ -80,9 +80,9 @@ class StreamEngine(Protocol):
         state (a SectorRejected stream keeps its state); a failed step changes no state."""
         ...
 
-    def warm_up(self, sectors: int, max_batch: int = 1, headroom: float = 1.0) -> float:
-        """Before serving: `sectors` warm-up steps, batches planned up to `max_batch` streams, capacities with
-        `headroom` over a synthetic turn's -> the mean seconds of one step."""
+    def warm_up(self, sectors: int, max_batch: int = 1) -> float:
+        """Before serving: `sectors` warm-up steps, batches planned up to `max_batch` streams (a fixed-shape
+        engine derives its capacities and padding from a synthetic turn) -> the mean seconds of one step."""
         ...
 
     def describe(self) -> EngineInfo: ...
@@ -102,7 +102,8 @@ class EngineSettings:
     ego_footprint: tuple[float, ...] | None = None
     slots: int = DEFAULT_SLOTS  # graph: stream-state slots (a server's max_streams)
     sector_voxels: int = 0  # graph: voxel rows a stream buffers per sector (0: the config's)
-    sector_points: int = 0  # graph: points every sector is planned for at least (0: the batch's largest)
+    # graph: points every sector is planned for at least (0: the batch's largest; a warm-up derives it)
+    sector_points: int = 0
     bev_crop: bool = True  # graph: the dense part on crops around each new sector after a stream's turn
 
 

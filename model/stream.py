@@ -81,10 +81,10 @@ class StreamingDetector(EngineBase):
     def describe(self) -> EngineInfo:
         return self._info()  # no fixed shapes, no slots: batches run unpadded
 
-    def warm_up(self, sectors: int, max_batch: int = 1, headroom: float = 1.0) -> float:
+    def warm_up(self, sectors: int, max_batch: int = 1) -> float:
         """Before a server is ready: the CPU NMS kernels compiled, then `sectors` single-stream steps of a
-        synthetic turn (filling the sector buffer) and one batch of two streams (`max_batch` and `headroom`:
-        nothing to plan here). The mean seconds of one step (0.1 if none ran)."""
+        synthetic turn (filling the sector buffer) and one batch of two streams (`max_batch`: nothing to plan
+        here). The mean seconds of one step (0.1 if none ran)."""
         turn = self._warm_up_turn(sectors)
         if turn is None:
             return 0.1

@@ -12,8 +12,8 @@
 #   bench    phim bench model: paper eager, and graph (crops) in bf16 at batch 1 and 8             ~8 min
 #   bench2   tiny graph at batch 1 and 8; paper graph bf16 batch 8 on the whole map (--whole-map)  ~7 min
 #   server   tiny (shipped) served by the graph engine, bf16, max batch 32: zenoh closed-loop sweep 1..64
-#            vehicles, then open loop at sensor rate (compiles 6 batch buckets first, on the whole
-#            map: SERVE_BEV_CROP=1 compiles the crop forms too, twice the warm-up)                ~6 min
+#            vehicles, then open loop at sensor rate (compiles 6 batch buckets first, each on the
+#            whole map and on crops)                                                             ~8 min
 #   server_paper  the same for `paper` (random weights: throughput only), max batch 8, sweep 1,4,8,16 ~9 min
 #   eval     the shipped model's accuracy in fp32 and bf16 on the GPU                              ~2 min
 #   train    the shipped model's next training phase on the simulator, 8 minutes, into OUTDIR/train;
@@ -46,10 +46,9 @@ bench() { # CONFIG BATCH ENGINE PRECISION SECONDS [--whole-map]: a graph run com
 
 serve_and_sweep() { # the worker as deployed, driven over zenoh by the load tester on the same host
     local dev=${SERVE_DEVICE:-cuda} engine=${SERVE_ENGINE:-graph} sweep=${SWEEP:-1,4,16,64} t0=$SECONDS
-    local tag=${SERVE_CONFIG:-tiny} crop
-    crop=$( ((${SERVE_BEV_CROP:-0})) && echo --bev-crop || echo --no-bev-crop)
+    local tag=${SERVE_CONFIG:-tiny}
     "$py" -m phim serve --config "$tag" --device "$dev" --engine "$engine" --precision "${SERVE_PRECISION:-bf16}" \
-        --max-batch "${SERVE_MAX_BATCH:-32}" --max-streams 128 "$crop" --queue-size 256 --port 18080 \
+        --max-batch "${SERVE_MAX_BATCH:-32}" --max-streams 128 --queue-size 256 --port 18080 \
         --zenoh-listen tcp/127.0.0.1:17447 >"$out/serve_$tag.log" 2>&1 &
     local pid=$!
     until curl -sf localhost:18080/health/ready >/dev/null; do

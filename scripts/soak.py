@@ -11,8 +11,8 @@
    the slopes over the second half (MB/min, least squares) of the RSS less the heap malloc keeps freed
    (`phim_heap_free_bytes` in /metrics: `phim serve` keeps up to 1 GB of it, phim.process.tune_malloc, and
    how much swings with the allocation pattern: 46-352 MB within one minute) under `--max-rss-slope`, and of
-   the heap in use (`phim_heap_in_use_bytes`: a leak grows it) under `--max-heap-slope`, and, once the idle
-   timeout has passed, no live streams left;
+   the heap in use (`phim_heap_in_use_bytes`: a leak grows it) under `--max-heap-slope`, and no live streams
+   left within the idle timeout (and 3 s) after the load;
 5. prints a table, writes `--out` (JSON) if given, exits 1 when a check failed.
 """
 
@@ -143,8 +143,9 @@ def soak(pid: int, url: str, zenoh: str, tmp: Path, duration_s: float, factor: f
         _, err = proc.communicate()
         reports[transport] = json.loads(out.read_text()) if out.exists() else {"error": err[-2000:]}
     done.set()
-    time.sleep(idle_s + 3)  # idle eviction
-    live = get_json(f"{url}/v1/streams")["live"]
+    evicted_by = time.monotonic() + idle_s + 3  # idle eviction: the timeout and the sweep's slack
+    while (live := get_json(f"{url}/v1/streams")["live"]) and time.monotonic() < evicted_by:
+        time.sleep(0.2)
     half = [s for s in samples if s[0] >= samples[-1][0] / 2] if samples else []
     none = (math.nan,) * 4
     first, last = (samples[0], samples[-1]) if samples else (none, none)

@@ -71,9 +71,7 @@ def engine_settings(settings: Settings) -> EngineSettings:
         refiner=settings.refiner,
         ego_footprint=settings.ego_footprint,
         slots=settings.max_streams,
-        sector_voxels=settings.sector_voxels,
-        sector_points=settings.sector_points,
-        bev_crop=settings.bev_crop,
+        sector_voxels=settings.sector_voxels,  # the graph engine derives padding and crops (docs/model.md)
     )
 
 

@@ -15,10 +15,10 @@ from model.engine import StreamEngine
 log = logging.getLogger(__name__)
 
 
-def warm_up(engine: StreamEngine, sectors: int, max_batch: int = 1, headroom: float = 1.0) -> float:
-    """The engine's own warm-up (`StreamEngine.warm_up`: `sectors` forwards, batches up to `max_batch`,
-    capacities with `headroom`), then the heap frozen (`freeze_heap`) -> the mean seconds of one forward."""
-    mean_s = engine.warm_up(sectors, max_batch, headroom)
+def warm_up(engine: StreamEngine, sectors: int, max_batch: int = 1) -> float:
+    """The engine's own warm-up (`StreamEngine.warm_up`: `sectors` forwards, batches up to `max_batch`), then
+    the heap frozen (`freeze_heap`) -> the mean seconds of one forward."""
+    mean_s = engine.warm_up(sectors, max_batch)
     log.info("%d objects frozen out of the collector's reach", freeze_heap())
     return mean_s
 

@@ -48,7 +48,6 @@ class WorkerConfig:
     idle_timeout_s: float = 10.0
     max_streams: int = 256
     warmup_sectors: int = 5
-    capacity_headroom: float = 2.0  # graph: capacities over the warm-up turn's
     min_score: float = 0.0  # replies keep the boxes scored at least this, unless a sector says otherwise
     tenant_max_streams: int | None = None  # live streams per tenant (server/tenants.py); None: half
     tenant_queue_size: int | None = None  # queued sectors a tenant is guaranteed; None: half of queue_size
@@ -286,9 +285,7 @@ class Worker:
             self._det, self._source = self._load()
             self._buckets = engine_buckets(self._det, self.cfg.max_streams)
             self.metrics.model_loaded(self.model_info())
-            self._batch_s = warm_up(
-                self._det, self.cfg.warmup_sectors, self.cfg.max_batch, self.cfg.capacity_headroom
-            )
+            self._batch_s = warm_up(self._det, self.cfg.warmup_sectors, self.cfg.max_batch)
         except Exception as e:
             log.exception("loading or warming up the model failed; the worker will never be ready")
             with self._cond:

@@ -48,8 +48,11 @@ def _frozen_heap():
 
 @pytest.fixture(autouse=True)
 def _seed_and_threads():
+    """One torch thread: the tests' models are small, and on a busy machine two OpenMP threads spin-wait on
+    each other (tests ran 6-10x slower with two under load, docs/benchmarks.md). Tests of a multi-threaded
+    path set their own."""
     torch.manual_seed(0)
-    torch.set_num_threads(2)
+    torch.set_num_threads(1)
 
 
 def kitti_scan(index: int = 0) -> torch.Tensor:

@@ -11,9 +11,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 
-from contract import DetectionsReply, SectorMessage, Timings
+from contract import MSGPACK, DetectionsReply, SectorMessage, Timings, decode_response, encode_sector
+from lidar.sectorizer import Sector
 from ros import messages
 from ros.pointcloud2 import POINT_FIELD_TYPES, POINTCLOUD2, typestore
 
@@ -250,6 +252,26 @@ def reply_for(msg: SectorMessage, n_boxes: int = 2) -> DetectionsReply:
         msg.stream_id, msg.seq, boxes, scores, np.zeros(n_boxes, np.int32), ("VEHICLE",) * n_boxes, 1, 0,
         Timings(1.0, 1.0, 2.0),
     )  # fmt: skip
+
+
+def http_replies(
+    url: str, stream_id: str, sectors: Sequence[Sector], fields: Sequence[str], stamp_ns: int, timeout: float
+) -> list[DetectionsReply]:
+    """The sectors sent over HTTP as stream `stream_id`, seq 0, 1, ... -> the server's replies, each checked
+    to be detections: the reference a bridge's boxes are compared with."""
+    replies = []
+    for seq, sector in enumerate(sectors):
+        msg = SectorMessage(stream_id, seq, sector.index, stamp_ns, sector.points, tuple(fields))
+        r = httpx.post(
+            f"{url}/v1/streams/{stream_id}/sectors",
+            content=encode_sector(msg),
+            headers={"Content-Type": MSGPACK},
+            timeout=timeout,
+        )
+        reply = decode_response(r.content)
+        assert isinstance(reply, DetectionsReply), reply
+        replies.append(reply)
+    return replies
 
 
 def assert_boxes(array: Any, reply: DetectionsReply, atol: float = 1e-5) -> None:

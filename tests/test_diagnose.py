@@ -62,13 +62,22 @@ def test_the_true_part_put_in_is_the_whole_error_when_it_is_the_only_one(part: s
     assert e[f"iou_true_{other}"] == pytest.approx(e["iou"]) and e["iou_true_yaw"] == pytest.approx(e["iou"])
 
 
-def test_phim_diagnose_on_the_shipped_model() -> None:
-    phim = str(Path(sys.executable).parent / "phim")
-    args = [phim, "diagnose", "--checkpoint", "default", "--scans", "2", "--seed", "7", "--json"]
-    done = subprocess.run(args, capture_output=True, text=True, timeout=300, cwd=REPO)
+def phim_diagnose(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    cmd = [str(Path(sys.executable).parent / "phim"), "diagnose", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=REPO)
+
+
+@pytest.fixture(scope="module")
+def by_class() -> dict:
+    """`phim diagnose` of the shipped model on two held-out scans, by class: the checkpoint and the seed
+    named as their defaults are (the tests below read it as either)."""
+    done = phim_diagnose("--checkpoint", "default", "--scans", "2", "--seed", "7", "--json")
     assert done.returncode == 0, done.stderr[-3000:]
-    result = json.loads(done.stdout)
-    vehicles = result["VEHICLE"]
+    return json.loads(done.stdout)
+
+
+def test_phim_diagnose_on_the_shipped_model(by_class: dict) -> None:
+    vehicles = by_class["VEHICLE"]
     assert vehicles["targets"] >= 5 and vehicles["iou_threshold"] == 0.7
     assert 0.0 <= vehicles["at_threshold"] <= 1.0 and 0.0 < vehicles["iou"] <= 1.0
     for part in ("size", "centre"):  # the shipped model's sizes and centres are off: the true ones gain
@@ -76,27 +85,16 @@ def test_phim_diagnose_on_the_shipped_model() -> None:
     assert vehicles["centre_m"] < 1.0  # the trained model finds vehicle centres to within a metre
 
 
-def test_phim_diagnose_by_points_and_range() -> None:
-    phim = str(Path(sys.executable).parent / "phim")
+def test_phim_diagnose_by_points_and_range(by_class: dict) -> None:
     groups = {}
-    for by in ("points", "range"):
-        args = [phim, "diagnose", "--scans", "2", "--by", by, "--json"]
-        done = subprocess.run(args, capture_output=True, text=True, timeout=300, cwd=REPO)
+    for by in ("points", "range"):  # the default checkpoint and seed
+        done = phim_diagnose("--scans", "2", "--by", by, "--json")
         assert done.returncode == 0, done.stderr[-3000:]
         groups[by] = json.loads(done.stdout)
-    whole = json.loads(
-        subprocess.run(
-            [phim, "diagnose", "--scans", "2", "--json"],
-            capture_output=True,
-            text=True,
-            timeout=300,
-            cwd=REPO,
-        ).stdout
-    )
     for by, result in groups.items():  # the buckets split each class's targets
         vehicle_keys = [k for k in result if k.startswith("VEHICLE, ")]
         assert len(vehicle_keys) >= 2, result.keys()
-        assert sum(result[k]["targets"] for k in vehicle_keys) == whole["VEHICLE"]["targets"], by
+        assert sum(result[k]["targets"] for k in vehicle_keys) == by_class["VEHICLE"]["targets"], by
     assert "VEHICLE, >= 301 points" in groups["points"] or "VEHICLE, 0-20 points" in groups["points"]
-    bad = subprocess.run([phim, "diagnose", "--by", "colour"], capture_output=True, text=True, timeout=120)
+    bad = phim_diagnose("--by", "colour", timeout=120)
     assert bad.returncode != 0 and "--by" in bad.stderr

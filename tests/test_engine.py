@@ -87,3 +87,25 @@ def test_a_compiled_graph_engine_may_compile_a_graph_per_bucket_in_the_thread_th
     thread.start()
     thread.join()
     assert seen[0] == 8 and seen[1] >= 2 * len(BATCH_BUCKETS), seen
+
+
+def test_a_warmed_up_graph_engine_derives_its_padding_and_capacities_from_the_calibration_turn() -> None:
+    """No server setting for them: the points every sector pads to are the bucket of 1.5 x the warm-up turn's
+    largest sector (four 32,000-point quarters: 49,152), more in proportion to a larger sector_voxels, unless
+    the engine was given them; the capacities are twice the calibration's peaks."""
+    eager, _ = build_engine(EngineSettings(device="cpu"))
+    assert isinstance(eager, StreamingDetector)
+    model = eager.model
+    turn = split_turn(torch.from_numpy(synthetic_turn(seed=0)), model.cfg.sectors_per_turn)
+    derived = GraphStreamingDetector(model, slots=2)
+    assert derived.sector_points == 0  # until the warm-up: each batch's largest sector
+    derived.warm_up(1)
+    reference = GraphStreamingDetector(model, slots=1)
+    reference.calibrate(turn)  # the measured peaks, no headroom
+    assert derived.sector_points == 49_152 and derived.describe().sector_points == 49_152
+    assert derived.planner.ratios == [2.0 * r for r in reference.planner.ratios]
+    denser = GraphStreamingDetector(model, 2 * model.cfg.sector_voxels, slots=1)
+    assert denser.planned_sector_points(turn) == 98_304
+    given = GraphStreamingDetector(model, slots=2, sector_points=40_000)
+    given.warm_up(1)
+    assert given.sector_points == 40_000

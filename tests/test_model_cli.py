@@ -3,17 +3,23 @@ benchmarks, not checked here)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from lidar.sources import scan_source
+from lidar.synthetic import synthetic_turn
 from model.checkpoint import resolve_checkpoint, save_checkpoint
-from model.config import tiny
+from model.config import Engine, PHiMConfig, paper, tiny
 from model.detector import PHiM
+from model.graph.bev import dense_cell_table
+from model.graph.bev_crop import crop_plan
+from model.tools.op_count import count_ops
 from phim.cli import main as app
 
 
@@ -104,16 +110,38 @@ def test_bench_ops_credits_every_op_to_a_model_function() -> None:
     assert report["scan"] == "numba" and any(w.startswith("model/ops/scan_numba.py") for w in rows)
 
 
-@pytest.mark.parametrize("config", ["tiny", "paper"])
-def test_the_graph_step_never_waits_for_the_device(config: str, tmp_path) -> None:
+def test_the_graph_step_never_waits_for_the_device(tmp_path: Path) -> None:
     """`phim bench ops --engine graph`: no op between the inputs on the device and the host copy syncs."""
-    from lidar.synthetic import synthetic_turn
-
     points = tmp_path / "turn.bin"
-    synthetic_turn(seed=0)[::8].astype(np.float32).tofile(points)  # thinned: paper runs a few CPU steps
-    args = ["bench", "ops", "--config", config, "--engine", "graph", "--points", str(points), "--json"]
+    synthetic_turn(seed=0)[::8].astype(np.float32).tofile(points)  # thinned: a few CPU steps
+    args = ["bench", "ops", "--config", "tiny", "--engine", "graph", "--points", str(points), "--json"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     report = json.loads(result.output.strip().splitlines()[-1])
     assert report["engine"] == "graph" and report["ops"] > 100
     assert report["host_syncs"] == 0, [r for r in report["rows"] if r["host_syncs"]]
+
+
+def narrow_paper() -> PHiMConfig:
+    """The paper config's layers, grids, crops and heading code, every layer 16 channels wide: the graph
+    step runs the same ops as the paper config's on a fraction of the arithmetic."""
+    p = paper()
+    return dataclasses.replace(
+        p,
+        vfe=dataclasses.replace(p.vfe, hidden=(16,)),
+        backbone=dataclasses.replace(p.backbone, d_model=16),
+        bev=dataclasses.replace(p.bev, num_filters=(16, 16, 32), num_upsample_filters=(16, 16, 16)),
+        head=dataclasses.replace(p.head, shared_channels=16, head_channels=16),
+    )
+
+
+def test_the_paper_configs_graph_step_never_waits_for_the_device() -> None:
+    """The same count (`count_ops`, which `phim bench ops --config paper --engine graph` runs) for the paper
+    config's layers: its step after a turn runs its dense part on crops of the map, as the paper's does."""
+    cfg = narrow_paper()
+    model = PHiM(cfg).eval()
+    assert crop_plan(cfg, dense_cell_table(model.to_bev)) is not None  # the crops of the paper's map
+    turn = torch.from_numpy(synthetic_turn(seed=0)[::8].astype(np.float32))  # (N, 4): as --points reads it
+    report = count_ops(model, turn, Engine.GRAPH)
+    assert report.engine == "graph" and report.config == "paper" and report.ops > 100
+    assert report.host_syncs == 0, [r for r in report.rows if r.host_syncs]

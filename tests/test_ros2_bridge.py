@@ -19,18 +19,22 @@ import httpx
 import numpy as np
 import pytest
 import zenoh
-from ros2_helpers import UINT8_INTENSITY, VELODYNE_XYZIRT, assert_boxes, pointcloud2_cdr, reply_for
+from ros2_helpers import (
+    UINT8_INTENSITY,
+    VELODYNE_XYZIRT,
+    assert_boxes,
+    http_replies,
+    pointcloud2_cdr,
+    reply_for,
+)
 from server_helpers import START_TIMEOUT_S, default_detector, free_endpoint, serve
 
 from contract import (
-    MSGPACK,
     DetectionsReply,
     ErrorCode,
     Limits,
     SectorMessage,
     ServiceError,
-    decode_response,
-    encode_sector,
 )
 from contract.ros2 import (
     Attachment,
@@ -336,19 +340,9 @@ def test_a_scan_gives_the_boxes_http_gives_and_markers(server: tuple[str, str]) 
         vehicle.publish(pointcloud2_cdr(points, stamp_ns=STAMP_NS, frame_id="velodyne"))
         arrays = vehicle.take(4)
         markers = vehicle.take(4, MARKERS_KEY, MARKER_ARRAY)
-        spin = cloud_spin(points)
-        for seq, (sector, array, marker) in enumerate(
-            zip(split_scan(points, FIELDS, 4, spin), arrays, markers, strict=True)
-        ):
-            msg = SectorMessage("ros2-ref", seq, sector.index, STAMP_NS, sector.points, FIELDS)
-            r = httpx.post(
-                f"{url}/v1/streams/ros2-ref/sectors",
-                content=encode_sector(msg),
-                headers={"Content-Type": MSGPACK},
-                timeout=WAIT_S,
-            )
-            reply = decode_response(r.content)
-            assert isinstance(reply, DetectionsReply), reply
+        sectors = split_scan(points, FIELDS, 4, cloud_spin(points))
+        replies = http_replies(url, "ros2-ref", sectors, FIELDS, STAMP_NS, WAIT_S)
+        for reply, array, marker in zip(replies, arrays, markers, strict=True):
             assert_boxes(array, reply, atol=1e-4)
             assert len(marker.markers) == len(reply.boxes) + 1 and marker.markers[0].action == 3
         assert len(arrays[-1].detections) > 0  # the comparison compared boxes

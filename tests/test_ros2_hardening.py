@@ -13,7 +13,7 @@ from collections.abc import Iterator
 import httpx
 import numpy as np
 import pytest
-from ros2_helpers import assert_boxes, pointcloud2_cdr
+from ros2_helpers import assert_boxes, http_replies, pointcloud2_cdr
 from server_helpers import START_TIMEOUT_S, default_detector, free_endpoint, serve
 from test_ros2_bridge import (
     FIELDS,
@@ -150,16 +150,9 @@ def test_nan_intensities_and_nan_coordinates_follow_one_rule(server: tuple[str, 
         vehicle.publish(pointcloud2_cdr(points, stamp_ns=STAMP_NS))
         arrays = vehicle.take(4)
         sectors = split_scan(kept, FIELDS, 4, cloud_spin(kept))
-        for seq, (sector, array) in enumerate(zip(sectors, arrays, strict=True)):
-            msg = SectorMessage("nan-ref", seq, sector.index, STAMP_NS, sector.points, FIELDS)
-            r = httpx.post(
-                f"{url}/v1/streams/nan-ref/sectors",
-                content=encode_sector(msg),
-                headers={"Content-Type": MSGPACK},
-                timeout=WAIT_S,
-            )
-            reply = decode_response(r.content)
-            assert isinstance(reply, DetectionsReply), reply
+        for array, reply in zip(
+            arrays, http_replies(url, "nan-ref", sectors, FIELDS, STAMP_NS, WAIT_S), strict=True
+        ):
             assert_boxes(array, reply, atol=1e-4)
         assert sum(len(a.detections) for a in arrays) > 0  # the comparison compared boxes
         assert sectors_total(url, "ok") == ok + 4  # the bridge's sectors (the reference came over HTTP)

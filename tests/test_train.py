@@ -23,10 +23,12 @@ from model.config import CLASS_NAMES, tiny
 from model.detector import PHiM
 from model.eval.prediction_files import read_predictions, write_predictions
 from model.eval.runner import ScanResult, predict_scan, score
+from model.train.data import SampleConfig
+from model.train.gt_sampling import GTSamplingConfig
 from model.train.loop import TrainConfig, one_cycle, train
 
 REPO = Path(__file__).resolve().parents[1]
-SHORT = TrainConfig(steps=3, checkpoint_every=2, log_every=1, workers=0)
+SHORT = TrainConfig(steps=2, checkpoint_every=2, log_every=1, workers=0)
 
 
 def _rows(run: Path) -> list[dict[str, str]]:
@@ -34,41 +36,39 @@ def _rows(run: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def test_a_short_run_writes_checkpoints_and_resumes(tmp_path: Path):
+def _saved_step(run: Path) -> int:
+    return torch.load(run / "state.pt", weights_only=True)["step"]
+
+
+def test_a_short_run_stops_on_its_time_budget_writes_checkpoints_and_resumes(tmp_path: Path):
+    """One run, four steps in all: out of time after step 1, resumed to its end, then (as if it had died
+    after logging step 2 with state.pt at step 1) resumed and lengthened to step 3."""
     run = tmp_path / "run"
-    model_path = train(SHORT, run, device="cpu", progress=False)
-    rows = _rows(run)
-    assert [r["step"] for r in rows] == ["1", "2", "3"]
-    assert all(np.isfinite(float(r["loss"])) and float(r["loss"]) > 0 for r in rows)
-    first = load_checkpoint(model_path, expected=tiny())
-    assert first.cfg == tiny()
+    model_path = train(SHORT, run, device="cpu", progress=False, max_minutes=1e-9)  # out of time after step 1
+    assert [r["step"] for r in _rows(run)] == ["1"]
+    assert _saved_step(run) == 1  # saved though checkpoint_every is 2
     with pytest.raises(FileExistsError, match="--resume"):
         train(SHORT, run, device="cpu", progress=False)
     with pytest.raises(ValueError, match="lr"):
         train(TrainConfig(steps=4, lr=1.0, workers=0), run, resume=True, device="cpu", progress=False)
-    longer = TrainConfig(steps=5, checkpoint_every=2, log_every=1, workers=0)
-    # state.pt holds step 3 (the last step always saves); pretend the run died after logging step 3 at 2
+    train(SHORT, run, resume=True, device="cpu", progress=False, max_minutes=60)  # a budget it does not reach
+    assert [r["step"] for r in _rows(run)] == ["1", "2"]
+    assert _saved_step(run) == 2  # the last step always saves (2 is also a checkpoint step)
+    first = load_checkpoint(model_path, expected=tiny())
+    assert first.cfg == tiny()
+    longer = TrainConfig(steps=3, checkpoint_every=2, log_every=1, workers=0)
+    # state.pt holds step 2; pretend the run died after logging step 2 at 1
     state = torch.load(run / "state.pt", weights_only=True)
-    assert state["step"] == 3
-    state["step"] = 2
+    state["step"] = 1
     torch.save(state, run / "state.pt")
     train(longer, run, resume=True, device="cpu", progress=False)
-    steps = [r["step"] for r in _rows(run)]
-    assert steps == ["1", "2", "3", "4", "5"]  # row 3 logged once, by the resumed run
-    assert torch.load(run / "state.pt", weights_only=True)["step"] == 5
+    rows = _rows(run)
+    assert [r["step"] for r in rows] == ["1", "2", "3"]  # row 2 logged once, by the resumed run
+    assert all(np.isfinite(float(r["loss"])) and float(r["loss"]) > 0 for r in rows)
+    assert _saved_step(run) == 3
     second = load_checkpoint(model_path)
     changed = [k for k, v in second.state_dict().items() if not torch.equal(v, first.state_dict()[k])]
-    assert changed  # the resumed step trained
-
-
-def test_a_time_budget_saves_stops_and_resumes(tmp_path: Path):
-    run = tmp_path / "run"
-    train(SHORT, run, device="cpu", progress=False, max_minutes=1e-9)  # out of time after the first step
-    assert [r["step"] for r in _rows(run)] == ["1"]
-    assert torch.load(run / "state.pt", weights_only=True)["step"] == 1  # saved though checkpoint_every is 2
-    train(SHORT, run, resume=True, device="cpu", progress=False, max_minutes=60)  # a budget it does not reach
-    assert [r["step"] for r in _rows(run)] == ["1", "2", "3"]
-    assert torch.load(run / "state.pt", weights_only=True)["step"] == 3
+    assert changed  # the resumed steps trained
 
 
 def test_init_starts_from_a_checkpoints_weights(tmp_path: Path):
@@ -132,7 +132,10 @@ def test_one_cycle_schedule_equals_torchs_one_cycle_lr():
 
 
 def test_training_with_a_data_loader_worker_process(tmp_path: Path):
-    cfg = TrainConfig(steps=2, checkpoint_every=2, log_every=1, workers=1, batch_size=2)
+    """One step of two scans, both from the worker, which builds its object bank (two scans) and pastes from
+    it into both (`fade` 1: a one-step run pastes in its step)."""
+    sample = SampleConfig(gt_sampling=GTSamplingConfig(fade=1.0))
+    cfg = TrainConfig(steps=1, log_every=1, workers=1, batch_size=2, sample=sample)
     train(cfg, tmp_path / "run", device="cpu", progress=False)
     assert float(_rows(tmp_path / "run")[-1]["scans_per_s"]) > 0
 

@@ -8,6 +8,7 @@ import contextlib
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import IO
 
@@ -99,10 +100,14 @@ def test_two_client_workers_on_one_host_join_one_router(tmp_path: Path):
     with (
         open(tmp_path / "fleet.log", "w") as log,
         spawned_router(router, log),
-        spawned_worker("w-a", router, log) as a,
-        spawned_worker("w-b", router, log) as b,
-        open_session(ZenohConfig(mode="client", listen=(), connect=(router,))) as watch,
+        contextlib.ExitStack() as workers,
+        ThreadPoolExecutor(2) as pool,  # both start at once
     ):
+        starting = [
+            pool.submit(workers.enter_context, spawned_worker(w, router, log)) for w in ("w-a", "w-b")
+        ]
+        a, b = (f.result() for f in starting)
+        watch = workers.enter_context(open_session(ZenohConfig(mode="client", listen=(), connect=(router,))))
         assert a.poll() is None and b.poll() is None
         keys = KeySpace()
         deadline = time.monotonic() + 30

@@ -144,3 +144,15 @@ def wedge_of(sites_theta: Tensor, batch: Tensor, valid: Tensor, streams: int, pe
     w_lo = torch.div(lo, per_wedge, rounding_mode="floor")
     w_hi = torch.div(hi, per_wedge, rounding_mode="floor")
     return torch.where(hi < 0, EMPTY, torch.where(w_lo == w_hi, w_lo, SPANS))
+
+
+def crop_wedges(wedges: list[tuple[int, ...]], keep: int, sectors_per_turn: int) -> list[int] | None:
+    """Each stream's wedge for a batch whose dense part can run on crops, else None; wedges[i]: the wedges
+    of the last keep + 1 sectors stream i's slot ran, oldest first. A stream qualifies once those are keep + 1
+    sectors, each in one wedge, and its next sector, predicted from its last two (the sweep goes on in the
+    same direction), falls in the wedge of the sector leaving its BEV map (the only change to the map is then
+    in that wedge)."""
+    for w in wedges:
+        if len(w) <= keep or min(w) < 0 or (2 * w[-1] - w[-2]) % sectors_per_turn != w[0]:
+            return None
+    return [w[0] for w in wedges]

@@ -33,8 +33,9 @@ from model.engine_base import (
     StatesExhausted,
 )
 from model.geometry.boxes import Detections
-from model.graph.bev_crop import EMPTY
+from model.graph.bev_crop import EMPTY, crop_wedges
 from model.graph.buckets import BATCH_BUCKETS, CapacityPlanner, batch_bucket, row_bucket
+from model.graph.compile import allow_bucket_graphs, compile_step
 from model.graph.slots import (
     GraphStreamState,
     SlotsExhausted,
@@ -53,6 +54,14 @@ log = logging.getLogger(__name__)
 
 __all__ = ["GraphStreamState", "GraphStreamingDetector", "SlotState", "from_stream_state"]
 DEFAULT_SLOTS = 32  # stream-state slots of a detector built without a count (the largest batch bucket)
+# The warm-up calibrates on a synthetic 64-beam turn (`lidar.synthetic`: four 32,000-point quarters); real
+# scans have up to twice its sites per point, so a warmed-up engine plans its capacities for twice the
+# peaks it measured there.
+CALIBRATION_HEADROOM = 2.0
+# Real sectors vary around the calibration turn's size (KITTI quarters 26-33k points): a warmed-up engine
+# pads every sector to the bucket of 1.5 x the turn's largest (49,152 points: a Waymo top-LiDAR quarter turn
+# fits), so that all of them share the one capacity bucket per batch size that the warm-up compiles.
+SECTOR_POINTS_OVER_TURN = 1.5
 
 
 class GraphStreamingDetector(EngineBase):
@@ -83,7 +92,7 @@ class GraphStreamingDetector(EngineBase):
         self.compiled = compile  # False: the step runs op by op (the compiled step's plain twin)
         # every sector pads to at least this many points' bucket, so that sectors of any size up to it share
         # one capacity bucket per batch bucket (the one a server compiles at warm-up); 0: the bucket of the
-        # batch's largest sector
+        # batch's largest sector, until a warm-up derives it (`planned_sector_points`)
         self.sector_points = sector_points
         # the dense part on crops around each new sector (`model.graph.bev_crop`), if asked and the config
         # has crops; crop_misses: steps that ran crops for a sector outside its predicted wedge, then the
@@ -96,17 +105,7 @@ class GraphStreamingDetector(EngineBase):
         self._sealed = False  # see seal()
         self._compiled: set[tuple[int, Capacity]] = set()  # buckets the compiled step has run
         self._uncompiled: set[tuple[int, Capacity]] = set()  # buckets run op by op after seal()
-        if compile:
-            # on CUDA each bucket's graph is captured as a CUDA graph and replayed (mode "reduce-overhead"):
-            # its outputs are overwritten by the next replay, and by then the step has copied them out (the
-            # host tensor to the host, the new states into their slots); on the CPU the code that calls the
-            # graph's kernels is C++, not Python ("cpp_wrapper": 3-4 % off a tiny step, docs/benchmarks.md)
-            cuda = self.device.type == "cuda"
-            guards = _live_module_tree
-            options = {"triton.cudagraphs": cuda, "cpp_wrapper": not cuda, "guard_filter_fn": guards}
-            self._run = torch.compile(self.step_module, fullgraph=True, dynamic=False, options=options)
-        else:
-            self._run = self.step_module
+        self._run = compile_step(self.step_module, self.device) if compile else self.step_module
         log.info(
             "graph streaming detector: sector_voxels=%d compile=%s state slots: %d x %.2f MiB = %.1f MiB "
             "on %s",
@@ -183,16 +182,18 @@ class GraphStreamingDetector(EngineBase):
             batch_buckets=BATCH_BUCKETS,
         )
 
-    def warm_up(self, sectors: int, max_batch: int = 1, headroom: float = 1.0) -> float:
+    def warm_up(self, sectors: int, max_batch: int = 1) -> float:
         """Before a server is ready: the CPU NMS kernels compiled; then, if `sectors` > 0, the capacities
-        learned from a synthetic turn (times `headroom`: real scans have more sites per point), a batch of
-        fresh streams run for every bucket up to `max_batch`, on the whole map and on crops (a compiled engine
-        compiles them here), `sectors` single-stream steps on one slot (given back), and the engine sealed:
-        no compiling after the warm-up. The mean seconds of one step (0.1 if none ran)."""
+        learned from a synthetic turn (times CALIBRATION_HEADROOM), the points every sector pads to derived
+        from it where not set (`planned_sector_points`), a batch of fresh streams run for every bucket up to
+        `max_batch`, on the whole map and on crops (a compiled engine compiles them here), `sectors`
+        single-stream steps on one slot (given back), and the engine sealed: no compiling after the warm-up.
+        The mean seconds of one step (0.1 if none ran)."""
         turn = self._warm_up_turn(sectors)
         if turn is None:
             return 0.1
-        self.calibrate(turn, headroom)
+        self.calibrate(turn, CALIBRATION_HEADROOM)
+        self.sector_points = self.sector_points or self.planned_sector_points(turn)
         crops = [False, True] if self.bev_crop else [False]
         for b in (b for b in BATCH_BUCKETS if b <= batch_bucket(max_batch)):
             for crop in crops:  # the whole map (a stream's first turn), and crops (every sector after it)
@@ -203,6 +204,13 @@ class GraphStreamingDetector(EngineBase):
         finally:
             self.release(taken)
             self.seal()  # a bucket not compiled by now runs op by op: no compile while serving
+
+    def planned_sector_points(self, turn: list[Tensor]) -> int:
+        """The points every sector pads to, derived from the calibration turn's sectors: the bucket of
+        SECTOR_POINTS_OVER_TURN x its largest, scaled up with `sector_voxels` over the config's (an engine
+        told to buffer denser sectors than the config's sensor gives pads them in proportion)."""
+        denser = max(1.0, self.sector_voxels / self.cfg.sector_voxels)
+        return row_bucket(round(max(int(s.shape[0]) for s in turn) * SECTOR_POINTS_OVER_TURN * denser))
 
     def _step(
         self, points: list[Tensor], states: list[SlotState]
@@ -228,19 +236,12 @@ class GraphStreamingDetector(EngineBase):
         return outcomes, new_states
 
     def _crop_wedges(self, states: list[SlotState]) -> list[int] | None:
-        """Each stream's wedge if the batch can run its dense part on crops, else None. A stream qualifies
-        once its slot's steps ran keep + 1 sectors, each in one wedge, and its next sector, predicted from
-        its last two (the sweep goes on in the same direction), falls in the wedge of the sector leaving its
-        BEV map (the only change to the map is then in that wedge). The step reports the true wedge; the
-        engine runs the whole map when one differs (`crop_misses`)."""
+        """Each stream's wedge if the batch can run its dense part on crops (`bev_crop.crop_wedges`), else
+        None. The step reports the true wedge; the engine runs the whole map when one differs
+        (`crop_misses`)."""
         if not self.bev_crop:
             return None
-        keep, n = self.cfg.buffer_sectors, self.cfg.sectors_per_turn
-        for s in states:
-            w = s.wedges
-            if len(w) <= keep or min(w) < 0 or (2 * w[-1] - w[-2]) % n != w[0]:
-                return None
-        return [s.wedges[0] for s in states]
+        return crop_wedges([s.wedges for s in states], self.cfg.buffer_sectors, self.cfg.sectors_per_turn)
 
     @property
     def compiled_buckets(self) -> frozenset[tuple[int, Capacity]]:
@@ -275,7 +276,7 @@ class GraphStreamingDetector(EngineBase):
                 )
             return self.step_module
         self._compiled.add((batch, cap))
-        _allow_bucket_graphs()  # a new bucket compiles here, in the calling thread
+        allow_bucket_graphs()  # a new bucket compiles here, in the calling thread
         return self._run
 
     @torch.inference_mode()
@@ -400,26 +401,3 @@ class GraphStreamingDetector(EngineBase):
             for d, s, st in zip(dets, states, stats, strict=True)
         ]
         return results, buffers
-
-
-def _allow_bucket_graphs() -> None:
-    """torch.compile's recompile limit (default 8) is a per-thread setting and the step compiles one graph per
-    (batch, capacity) bucket in whichever thread runs it (a server's device thread): raise it there."""
-    cfg = torch._dynamo.config
-    cfg.recompile_limit = max(cfg.recompile_limit, 64)
-
-
-def _live_module_tree(entries: list) -> list[bool]:
-    """torch.compile's guard filter (True: keep) for the step module: no guards on its module tree and its
-    parameters and buffers, which are a detector's own for its lifetime and read live as graph inputs (with
-    them the guards took 0.5 ms a step on the CPU); the constants read while tracing (config fields, channel
-    counts) stay guarded (~0.3 ms, ~0.2 without them), so that a second detector whose config differs in one
-    compiles its own graph rather than reusing the first's (dynamo caches per code object)."""
-    return [not _module_tree_guard(e) for e in entries]
-
-
-def _module_tree_guard(entry) -> bool:
-    if not entry.orig_guard.source.is_unspecialized_nn_module():
-        return False
-    constant = entry.guard_type in ("CONSTANT_MATCH", "EQUALS_MATCH", "SEQUENCE_LENGTH", "ID_MATCH")
-    return not constant or any(part in entry.name for part in ("_parameters", "_buffers", "hooks"))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import TypeVar
 
 import torch
 from torch import Tensor, nn
@@ -13,6 +14,8 @@ from model.config import PHiMConfig
 from model.detector import PHiM
 from model.layers.phim_block import StreamLayout
 from model.sectors import split_turn
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -34,11 +37,12 @@ def count_params(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
 
 
-def _flops(fn) -> float:
+def _counted(fn: Callable[[], T]) -> tuple[T, int]:
+    """fn's result and the FLOPs it ran."""
     counter = FlopCounterMode(display=False)
     with counter:
-        fn()
-    return counter.get_total_flops() / 1e9
+        out = fn()
+    return out, counter.get_total_flops()
 
 
 def _silent(what: str) -> None:
@@ -50,19 +54,25 @@ def model_info(cfg: PHiMConfig, turn: Tensor, progress: Callable[[str], None] = 
     """Counts matmul/conv FLOPs (multiply-add = 2 FLOPs) of real forwards over `turn` (N, C) points;
     `progress` hears of each forward as it starts.
 
-    FLOPs of a sparse model depend on occupancy, so the input scan is part of the answer.
+    FLOPs of a sparse model depend on occupancy, so the input scan is part of the answer. The BEV backbone
+    and head run on the whole map however many sectors feed it, so their pass is counted once and added to
+    the 3D part of the whole turn and to that of one sector.
     """
     progress(f"building the {cfg.name} config")
     model = PHiM(cfg).eval()
     sectors = split_turn(turn, cfg.sectors_per_turn)
     turn_layout = StreamLayout.single_stream(len(sectors), model.device)
-    progress(f"encoding the turn ({turn.shape[0]} points, {len(sectors)} sectors): the voxels")
-    enc = model.encode(sectors, turn_layout, model.init_states(1))
-    progress("counting the FLOPs of the whole turn in one pass (the slowest part: one counted forward)")
-    full = _flops(lambda: model.detect([model.encode(sectors, turn_layout, model.init_states(1)).sectors]))
-    progress("counting the FLOPs of one streaming step (one sector)")
+    progress(
+        f"counting the FLOPs of the whole turn in one pass ({turn.shape[0]} points, {len(sectors)} sectors): "
+        "the 3D part"
+    )
+    enc, turn_3d = _counted(lambda: model.encode(sectors, turn_layout, model.init_states(1)))
+    progress("counting the FLOPs of the BEV backbone and head (the slowest part: one counted forward)")
+    _, dense = _counted(lambda: model.detect([enc.sectors]))
+    progress("counting the FLOPs of one streaming step (one sector through the 3D part)")
     one = StreamLayout.one_per_item(1, model.device)
-    step = _flops(lambda: model.detect([model.encode(sectors[:1], one, model.init_states(1)).sectors]))
+    _, sector_3d = _counted(lambda: model.encode(sectors[:1], one, model.init_states(1)))
+    full, step = (turn_3d + dense) / 1e9, (sector_3d + dense) / 1e9
     parts = {
         "voxelizer": model.voxelizer,
         "backbone3d": model.backbone,
