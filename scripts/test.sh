@@ -11,5 +11,5 @@ VENV=${PHIM_VENV:-.venv}
 "$VENV/bin/ruff" format --check .
 # Two test processes (pytest-xdist), each file's tests in one of them: most tests use one core (one torch
 # thread, a server and its client taking turns), so two processes keep both cores of a 2-core machine busy
-# (docs/benchmarks.md: 8.7 against 20 minutes). PHIM_TEST_WORKERS=0 runs everything in this process.
+# (docs/benchmarks.md). PHIM_TEST_WORKERS=0 runs everything in this process.
 exec "$VENV/bin/python" -m pytest -q -n "${PHIM_TEST_WORKERS:-2}" --dist loadfile "$@"  # warnings are errors: pyproject.toml
