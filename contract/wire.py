@@ -20,7 +20,7 @@ STREAM_ID_PATTERN = "^[A-Za-z0-9_.-]+$"
 MAX_LIST_LEN = 1024  # the schema's own ceiling on `fields` (the server's max_fields is lower)
 # a server's min_score unless it is set otherwise (`phim serve --min-score`; GET /v1/model says what it is):
 # the shipped default model's best vehicle F1, real samples and simulated scans together (docs/model-card.md)
-DEFAULT_MIN_SCORE = 0.5
+DEFAULT_MIN_SCORE = 0.4
 
 
 class ErrorCode(enum.StrEnum):

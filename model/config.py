@@ -182,6 +182,11 @@ class RefineConfig:
     grow: tuple[float, float, float] = (1.0, 1.0, 0.5)  # metres added to l, w, h for the points read
     hidden: int = 128  # channels of the pooled point feature
     iou_weight: float = 0.5  # refined score = score^(1 - a) * predicted IoU^a
+    # a second per-point layer that reads each point with the first layer's pooled feature (PointNet's
+    # segmentation form): the points' shape relative to the whole object, not only each alone
+    context: bool = True
+    # a ninth output, the logit that the box points the wrong way: above 0 the refined box turns by pi
+    flip: bool = True
 
 
 @dataclass(frozen=True)
@@ -258,7 +263,7 @@ class PHiMConfig:
             buffer_sectors=d["buffer_sectors"],
             history=MambaHistory(d.get("history", MambaHistory.TURN)),
             sector_voxels=d.get("sector_voxels") or _default_sector_voxels(d["name"]),
-            refine=RefineConfig(**_tuples(d["refine"])) if d.get("refine") else None,
+            refine=_refine_config(d.get("refine")),
             ego=EgoFootprint(**d["ego"]) if d.get("ego") else None if "ego" in d else EgoFootprint(),
         )
 
@@ -266,6 +271,11 @@ class PHiMConfig:
 def _default_sector_voxels(name: str) -> int:
     """For a config dict written before `sector_voxels` existed: the named config's, else the default."""
     return CONFIGS[name]().sector_voxels if name in CONFIGS else PHiMConfig.sector_voxels
+
+
+def _refine_config(d: dict | None) -> RefineConfig | None:
+    """A checkpoint's refiner config; one saved before `context` and `flip` existed had neither."""
+    return RefineConfig(**{"context": False, "flip": False, **_tuples(d)}) if d else None
 
 
 def _tuples(d: dict) -> dict:

@@ -22,7 +22,7 @@ from test_streaming import assert_same_detections
 from contract import DetectionsReply, decode_response, encode_sector
 from lidar.sources import scan_source
 from model.checkpoint import init_weights, load_checkpoint, load_default_model, resolve_checkpoint
-from model.config import RefineConfig, tiny
+from model.config import PHiMConfig, RefineConfig, tiny
 from model.detector import PHiM
 from model.eval.metrics import iou_matrix
 from model.eval.runner import scan_sectors
@@ -30,6 +30,7 @@ from model.geometry.boxes import Detections
 from model.layers import refine as refine_module
 from model.layers.phim_block import StreamLayout
 from model.layers.refine import (
+    apply_output,
     apply_residual,
     box_points,
     box_points_reference,
@@ -41,6 +42,7 @@ from model.layers.refine import (
 )
 from model.sectors import split_turn
 from model.stream import StreamingDetector
+from model.train.refine import Proposals, fit
 
 CFG = RefineConfig(points=16)
 
@@ -144,6 +146,49 @@ def test_the_residual_target_turns_a_box_into_its_truth():
     assert float(dyaw.abs().max()) < 1e-4
 
 
+def test_the_refiner_learns_from_the_points_which_boxes_point_the_wrong_way():
+    """`RefineConfig.flip`: boxes whose points lie in their front half point the wrong way (their true box
+    is turned by pi); `fit` teaches the flip logit that, and `apply_output` turns those boxes."""
+    g = torch.Generator().manual_seed(5)
+    n, p = 512, 16
+    boxes = torch.cat(
+        (torch.randn(n, 3, generator=g) * 10, torch.full((n, 3), 2.0), torch.rand(n, 1, generator=g) * 6), 1
+    )
+    backwards = torch.rand(n, generator=g) < 0.5
+    local = torch.rand(n, p, 3, generator=g) - 0.5
+    local[:, :, 0] = torch.where(backwards[:, None], local[:, :, 0].abs(), -local[:, :, 0].abs())
+    truth = boxes.clone()
+    truth[:, 6] += backwards.float() * math.pi
+    data = Proposals(
+        local,
+        torch.full((n,), p),
+        boxes,
+        torch.full((n,), 0.5),
+        torch.zeros(n, dtype=torch.long),
+        truth,
+        torch.ones(n),
+    )
+    cfg = RefineConfig(points=p, flip=True)
+    torch.manual_seed(0)
+    refiner = PHiM(dataclasses.replace(tiny(), refine=cfg)).refiner
+    fit(refiner, data, epochs=60, lr=5e-3, batch=128)
+    with torch.no_grad():
+        out = refiner(data.local, data.counts, data.boxes, data.scores, data.labels)  # (n, 9)
+    turned = apply_output(boxes, out, cfg)
+    assert float(((out[:, 8] > 0) == backwards).float().mean()) > 0.95
+    ahead = torch.cos(turned[:, 6] - truth[:, 6]) > 0  # the refined box points the true box's way
+    assert float(ahead.float().mean()) > 0.95
+
+
+def test_a_refiner_saved_before_context_and_flip_loads_as_it_was_trained():
+    d = dataclasses.replace(tiny(), refine=RefineConfig()).to_dict()
+    del d["refine"]["context"], d["refine"]["flip"]
+    cfg = PHiMConfig.from_dict(d).refine
+    assert cfg is not None and not cfg.context and not cfg.flip
+    refiner = PHiM(dataclasses.replace(tiny(), refine=cfg)).refiner
+    assert refiner.out[-1].out_features == 8 and not hasattr(refiner, "context_point")
+
+
 def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_none():
     refiner = PHiM(dataclasses.replace(tiny(), refine=RefineConfig())).refiner
     sectors = [torch.randn(n, 4) for n in (10, 20, 30, 40, 50)]
@@ -167,7 +212,10 @@ def _refine_plain(refiner, det: Detections, points: torch.Tensor) -> Detections:
     a = refiner.cfg.iou_weight
     scores = det.scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
     order = torch.argsort(scores, descending=True, stable=True)
-    return Detections(apply_residual(det.boxes, out)[order], scores[order], det.labels[order])
+    boxes = apply_residual(det.boxes, out)
+    if refiner.cfg.flip:
+        boxes[:, 6] = torch.where(out[:, 8] > 0, boxes[:, 6] + math.pi, boxes[:, 6])
+    return Detections(boxes[order], scores[order], det.labels[order])
 
 
 @pytest.fixture(params=[1, 2])
@@ -179,11 +227,16 @@ def torch_threads(request):
 
 
 @torch.no_grad()
-def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone(torch_threads: int):
+@pytest.mark.parametrize(
+    "cfg",
+    [RefineConfig(points=16, context=False, flip=False), RefineConfig(points=16, context=True, flip=True)],
+)
+def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone(torch_threads: int, cfg):
     """`refine_many` (the engines' path: lookups per stream, on torch's threads at once where it has
     several, one forward over the batch's boxes, in chunks on the CPU) against the plain twin per stream;
     streams of 40, 0 and 300 boxes (two chunks)."""
-    refiner = PHiM(dataclasses.replace(tiny(), refine=RefineConfig(points=16))).refiner.eval()
+    torch.manual_seed(0)
+    refiner = PHiM(dataclasses.replace(tiny(), refine=cfg)).refiner.eval()
     g = torch.Generator().manual_seed(9)
     dets, points = [], []
     for seed, b in ((4, 40), (5, 0), (6, 300)):
@@ -208,7 +261,11 @@ def test_train_refiner_writes_the_frozen_detector_with_a_refiner_and_train_start
     cmd = [sys.executable, "-m", "phim", "train-refiner", "--out", str(out), "--seed", "5", "--points", "8"]
     subprocess.run([*cmd, "--scans", "2", "--epochs", "1", "--threads", "1"], check=True, capture_output=True)
     refined = load_checkpoint(out, expected=tiny())  # `tiny` with a refiner is still `tiny`
-    assert refined.cfg.refine == RefineConfig(points=8) and refined.refiner is not None
+    assert (
+        refined.cfg.refine == RefineConfig(points=8)
+        and refined.cfg.refine.flip
+        and refined.refiner is not None
+    )
     default, _ = resolve_checkpoint("default")
     plain = {k: v for k, v in refined.state_dict().items() if not k.startswith("refiner.")}
     base = {k: v for k, v in default.state_dict().items() if not k.startswith("refiner.")}

@@ -34,7 +34,7 @@ VIEWS = ("side_on", "end_on")
 @dataclass(frozen=True)
 class MatchConfig:
     iou: float = 0.5  # rotated BEV IoU of a match (the vehicle check's and the team's)
-    score: float = 0.5  # predictions at or above this score (the server's default min_score)
+    score: float = 0.5  # predictions at or above this score (the vehicle check's)
 
 
 def _fold(angle: np.ndarray, period: float) -> np.ndarray:

@@ -5,9 +5,11 @@ objects but are too loose for 3D IoU 0.7 (docs/model-card.md). The refiner reads
 for each box, the points inside the box grown by `RefineConfig.grow`, in the box's own frame (centre at the
 origin, x along its yaw), `RefineConfig.points` of them picked evenly in firing order (repeated when fewer).
 A PointNet (a shared per-point MLP, max-pooled, with the box's class, log size, score, point count and
-range) predicts a residual (dx, dy, dz in the box frame, log size ratios, yaw change on the axis) and the
-refined box's 3D IoU; the refined score is score^(1 - a) * iou^a (`RefineConfig.iou_weight`), as the
-head's IoU rectification.
+range; with `RefineConfig.context` a second per-point layer reading each point with the pooled feature)
+predicts a residual (dx, dy, dz in the box frame, log size ratios, yaw change on the axis), the refined
+box's 3D IoU and, with `RefineConfig.flip`, whether the box points the wrong way (the detector's
+direction comes from 0.8 m BEV cells; the points can tell a car's front from its back). The refined score
+is score^(1 - a) * iou^a (`RefineConfig.iou_weight`), as the head's IoU rectification.
 
 `box_points` finds the points through a grid index of 1 m cells: a numba kernel on the CPU
 (`model.ops.box_points_numba`), tensor ops elsewhere (`box_points_torch`); `box_points_reference`, the plain
@@ -30,6 +32,7 @@ from model.ops.box_points_numba import REACH, SLACK, box_points_cpu, grid_cells
 from model.ops.numba_support import numba_kernel
 
 _CELL = 1.0  # metres: the grid index's cells
+_CONTEXT = 64  # channels of the context layer's per-point hidden layer (`RefineConfig.context`)
 _EPS = 1e-3  # metres around a box's bounding rectangle
 
 
@@ -140,15 +143,29 @@ class BoxRefiner(nn.Module):
         self.num_classes = num_classes
         w = cfg.hidden
         self.point = nn.Sequential(nn.Linear(6, 64), nn.ReLU(), nn.Linear(64, w), nn.ReLU())
+        if cfg.context:  # Linear(cat(point, pooled)) split in two: the pooled part once per box
+            self.context_point = nn.Linear(w, _CONTEXT)
+            self.context_box = nn.Linear(w, _CONTEXT, bias=False)
+            self.context_out = nn.Sequential(nn.ReLU(), nn.Linear(_CONTEXT, w), nn.ReLU())
+        pooled = 2 * w if cfg.context else w
         self.out = nn.Sequential(
-            nn.Linear(w + num_classes + 6, 128), nn.ReLU(), nn.Linear(128, 64), nn.ReLU(), nn.Linear(64, 8)
+            nn.Linear(pooled + num_classes + 6, 128),
+            nn.ReLU(),
+            nn.Linear(128, 64),
+            nn.ReLU(),
+            nn.Linear(64, 9 if cfg.flip else 8),
         )
 
     def forward(self, local: Tensor, counts: Tensor, boxes: Tensor, scores: Tensor, labels: Tensor) -> Tensor:
-        """local (B, P, 3) box-frame points, counts (B,), boxes (B, 7), scores (B,), labels (B,) -> (B, 8):
-        the residual (dx, dy, dz, dlog l, dlog w, dlog h, dyaw) and the refined box's IoU logit."""
+        """local (B, P, 3) box-frame points, counts (B,), boxes (B, 7), scores (B,), labels (B,) ->
+        (B, 8 or 9): the residual (dx, dy, dz, dlog l, dlog w, dlog h, dyaw), the refined box's IoU logit
+        and, with `cfg.flip`, the logit that the box points the wrong way."""
         half = boxes[:, None, 3:6] / 2  # (B, 1, 3)
-        f = self.point(torch.cat((local, local / half), 2)).amax(1)  # (B, W)
+        h = self.point(torch.cat((local, local / half), 2))  # (B, P, W)
+        f = h.amax(1)  # (B, W)
+        if self.cfg.context:
+            c = self.context_out(self.context_point(h) + self.context_box(f)[:, None])  # (B, P, W)
+            f = torch.cat((f, c.amax(1)), 1)  # (B, 2W)
         onehot = nn.functional.one_hot(labels, self.num_classes).to(boxes.dtype)
         g = torch.cat(
             (
@@ -171,6 +188,15 @@ def apply_residual(boxes: Tensor, res: Tensor) -> Tensor:
     dims = boxes[:, 3:6] * torch.exp(res[:, 3:6])
     centre = torch.stack((x, y, boxes[:, 2] + res[:, 2]), 1)
     return torch.cat((centre, dims, (boxes[:, 6] + res[:, 6])[:, None]), 1)
+
+
+def apply_output(boxes: Tensor, out: Tensor, cfg: RefineConfig) -> Tensor:
+    """boxes (B, 7) and the refiner's output (B, 8 or 9) -> the refined boxes (B, 7): the residual, then a
+    half turn where the flip logit is above 0 (`cfg.flip`)."""
+    refined = apply_residual(boxes, out)
+    if cfg.flip:
+        refined[:, 6] += math.pi * (out[:, 8] > 0).to(refined.dtype)
+    return refined
 
 
 def residual_target(boxes: Tensor, truth: Tensor) -> Tensor:
@@ -212,8 +238,8 @@ def refine_many(refiner: BoxRefiner, dets: list[Detections], points: list[Tensor
     boxes = torch.cat([d.boxes for d in dets]).to(dev)  # (T, 7)
     scores = torch.cat([d.scores for d in dets]).to(dev)  # (T,)
     labels = torch.cat([d.labels for d in dets]).to(dev)  # (T,)
-    out = refiner_forward(refiner, local, counts, boxes, scores, labels)  # (T, 8)
-    refined = apply_residual(boxes, out)
+    out = refiner_forward(refiner, local, counts, boxes, scores, labels)  # (T, 8 or 9)
+    refined = apply_output(boxes, out, cfg)
     a = cfg.iou_weight
     refined_scores = scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
     split = zip(refined.split(sizes), refined_scores.split(sizes), labels.split(sizes), dets, strict=True)
@@ -223,8 +249,8 @@ def refine_many(refiner: BoxRefiner, dets: list[Detections], points: list[Tensor
 def refiner_forward(
     refiner: BoxRefiner, local: Tensor, counts: Tensor, boxes: Tensor, scores: Tensor, labels: Tensor
 ) -> Tensor:
-    """`BoxRefiner.forward` over T boxes (its inputs on the refiner's device) -> (T, 8): one forward, or on a
-    CPU one per `_CPU_CHUNK` boxes."""
+    """`BoxRefiner.forward` over T boxes (its inputs on the refiner's device) -> (T, 8 or 9): one forward,
+    or on a CPU one per `_CPU_CHUNK` boxes."""
     if local.device.type != "cpu" or boxes.shape[0] <= _CPU_CHUNK:
         return refiner(local, counts, boxes, scores, labels)
     parts = zip(*(x.split(_CPU_CHUNK) for x in (local, counts, boxes, scores, labels)), strict=True)

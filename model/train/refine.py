@@ -3,8 +3,8 @@
 1. `proposals`: the detector's full-turn detections on simulated scans, each with the raw points around
    it (`box_points`, as serving reads them) and its best-overlapping true box of the same class.
 2. `fit`: the refiner learns the residual to that true box where the 3D IoU is at least `MATCH_IOU` (L1
-   plus 1 - IoU of the refined box) and, on every box, the refined box's IoU (binary cross-entropy; 0 for a
-   box on no object).
+   plus 1 - IoU of the refined box; with `RefineConfig.flip` also whether it points the wrong way) and, on
+   every box, the refined box's IoU (binary cross-entropy; 0 for a box on no object).
 The detector's weights do not change: the refiner is trained after it (`phim train-refiner`).
 """
 
@@ -31,6 +31,10 @@ from model.layers.refine import BoxRefiner, apply_residual, box_points, residual
 log = logging.getLogger(__name__)
 
 MATCH_IOU = 0.3  # a box with at least this 3D IoU with a true box of its class learns the residual to it
+# the flip logit's loss against the residual's (`RefineConfig.flip`): at 1.0 it took 0.01-0.07 AP from the
+# residual on the simulator (docs/model-card.md, "The box refiner's recipe"); at 0.25 it learns the flips
+# and the AP stays
+FLIP_WEIGHT = 0.25
 
 
 @dataclass
@@ -90,8 +94,9 @@ def proposals(model: PHiM, cfg: RefineConfig, source: Callable[[int], LabeledSca
 
 
 def refiner_loss(refiner: BoxRefiner, p: Proposals) -> Tensor:
-    """L1 and 1 - IoU of the residual on the matched boxes, BCE of the IoU logit on all of them."""
-    out = refiner(p.local, p.counts, p.boxes, p.scores, p.labels)  # (B, 8)
+    """L1 and 1 - IoU of the residual on the matched boxes (and, with `RefineConfig.flip`, the flip logit's
+    binary cross-entropy: does the true box point the other way), BCE of the IoU logit on all of them."""
+    out = refiner(p.local, p.counts, p.boxes, p.scores, p.labels)  # (B, 8 or 9)
     pos = p.iou >= MATCH_IOU
     iou_target = torch.zeros_like(p.scores)
     loss = out.sum() * 0.0
@@ -101,6 +106,10 @@ def refiner_loss(refiner: BoxRefiner, p: Proposals) -> Tensor:
         iou = rotated_iou_3d_aligned(apply_residual(p.boxes[pos], res), p.truth[pos]).clamp(0.0, 1.0)
         loss = loss + (1 - iou).mean()
         iou_target[pos] = iou.detach()
+        if refiner.cfg.flip:
+            backwards = (torch.cos(p.truth[pos, 6] - p.boxes[pos, 6]) < 0).to(out.dtype)
+            flip = nn.functional.binary_cross_entropy_with_logits(out[pos, 8], backwards)
+            loss = loss + FLIP_WEIGHT * flip
     return loss + nn.functional.binary_cross_entropy_with_logits(out[:, 7], iou_target)
 
 

@@ -42,6 +42,18 @@ from model.train.refine import MATCH_IOU, Proposals
     show_default=True,
     help="Points the refiner reads per box.",
 )
+@click.option(
+    "--context/--no-context",
+    default=RefineConfig.context,
+    show_default=True,
+    help="A second per-point layer reading the pooled feature (RefineConfig.context).",
+)
+@click.option(
+    "--flip/--no-flip",
+    default=RefineConfig.flip,
+    show_default=True,
+    help="Also predict whether a box points the wrong way, and turn it (RefineConfig.flip).",
+)
 @threads_option
 def train_refiner_cmd(
     checkpoint: str,
@@ -53,6 +65,8 @@ def train_refiner_cmd(
     epochs: int,
     lr: float,
     points: int,
+    context: bool,
+    flip: bool,
     threads: int,
 ) -> None:
     """Train the box refiner on the detector's own boxes (the detector is frozen): on simulated scans, or on
@@ -69,7 +83,7 @@ def train_refiner_cmd(
     if threads:
         torch.set_num_threads(threads)
     detector, path = resolve_checkpoint(checkpoint)
-    cfg = dataclasses.replace(detector.cfg, refine=RefineConfig(points=points))
+    cfg = dataclasses.replace(detector.cfg, refine=RefineConfig(points=points, context=context, flip=flip))
     torch.manual_seed(0)  # the refiner's initial weights
     model = PHiM(cfg)
     weights = {k: v for k, v in detector.state_dict().items() if not k.startswith("refiner.")}
