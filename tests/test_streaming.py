@@ -28,9 +28,13 @@ def make_model(cfg: PHiMConfig | None = None, refine: bool = False) -> PHiM:
     never cut between near-ties (float noise would pick there)."""
     cfg = cfg or tiny()
     cfg = dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, score_threshold=0.45))
-    cfg = dataclasses.replace(cfg, refine=RefineConfig()) if refine else cfg
     torch.manual_seed(1)
     model = PHiM(cfg)
+    if refine:  # the same detector as without it, whatever the refiner's size draws from the generator
+        with torch.random.fork_rng():
+            detector = model.state_dict()
+            model = PHiM(dataclasses.replace(cfg, refine=RefineConfig()))
+            model.load_state_dict(detector, strict=False)
     with torch.no_grad():
         model.head.heatmap[-1].weight.mul_(40.0)
     # Non-trivial BatchNorm statistics so eval mode is not an identity-like network.
