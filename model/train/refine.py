@@ -31,9 +31,8 @@ from model.layers.refine import BoxRefiner, apply_residual, box_points, residual
 log = logging.getLogger(__name__)
 
 MATCH_IOU = 0.3  # a box with at least this 3D IoU with a true box of its class learns the residual to it
-# the flip logit's loss against the residual's (`RefineConfig.flip`): at 1.0 it took 0.01-0.07 AP from the
-# residual on the simulator (docs/model-card.md, "The box refiner's recipe"); at 0.25 it learns the flips
-# and the AP stays
+# the flip logit's loss against the residual's (`RefineConfig.flip`): at 1.0 it takes AP from the residual,
+# at 0.25 it learns the flips and the AP stays (docs/model-card.md, "The box refiner's recipe")
 FLIP_WEIGHT = 0.25
 
 
