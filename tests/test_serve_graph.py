@@ -207,19 +207,42 @@ def test_slots_come_back_when_streams_end_are_evicted_or_reset(monkeypatch: pyte
         assert det.slots.free == 3
 
 
-def test_the_scheduler_runs_a_full_bucket_at_once_and_waits_when_one_just_misses():
+def queued(worker: Worker) -> int:
+    """Sectors waiting in the worker's queue (read without its lock: for polling)."""
+    return sum(len(e.pending) for e in list(worker.table.entries.values()))
+
+
+def test_the_scheduler_runs_a_full_bucket_at_once_and_waits_when_one_just_misses(
+    monkeypatch: pytest.MonkeyPatch,
+):
     det = GraphStreamingDetector(comparable_detector().model, sector_voxels=512, slots=5)
     turns = [light_sectors(seed) for seed in range(5)]
     cars = [f"car-{i}" for i in range(5)]
     max_wait_ms = 10_000.0  # far above the spread of 4 concurrent posts, even on a busy machine
-    settings = dict(max_batch=8, max_wait_ms=max_wait_ms, max_streams=5, deadline_ms=START_TIMEOUT_S * 1e3)
+    settings = dict(
+        max_batch=8,
+        max_wait_ms=max_wait_ms,
+        max_streams=5,
+        deadline_ms=START_TIMEOUT_S * 1e3,
+        idle_timeout_s=START_TIMEOUT_S,  # no stream idles out, however slow the machine
+    )
     with serve(det, **settings) as s, ThreadPoolExecutor(5) as pool:
+        worker = s.server.config.app.state.services.worker
         first = [pool.submit(post_raw, s.url, c, 0, t[0]) for c, t in zip(cars, turns, strict=True)]
         assert all(isinstance(f.result(), DetectionsReply) for f in first)
         before = batches(s.url)
+        gate = StepGate.install(det, monkeypatch)  # the fifth car's sector holds the loop while 4 queue
+        fifth = pool.submit(post_raw, s.url, cars[4], 1, turns[4][1])
+        assert gate.entered.wait(START_TIMEOUT_S)
         four = [pool.submit(post_raw, s.url, c, 1, t[1]) for c, t in zip(cars[:4], turns[:4], strict=True)]
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while queued(worker) < 4:
+            assert time.monotonic() < deadline, "the four sectors were never queued"
+            time.sleep(0.01)
+        gate.release()
         replies = [f.result() for f in four]  # 4 of 5 live streams: a full bucket, the fifth can't fill 8
-        assert batches(s.url) == (before[0] + 1, before[1] + 4)
+        assert isinstance(fifth.result(), DetectionsReply)
+        assert gate.batches == [1, 4] and batches(s.url) == (before[0] + 2, before[1] + 5)
         assert all(isinstance(r, DetectionsReply) and r.timings.queue_ms < max_wait_ms for r in replies)
         three = [pool.submit(post_raw, s.url, c, 2, t[2]) for c, t in zip(cars[:3], turns[:3], strict=True)]
         replies = [f.result() for f in three]  # 3 would pad to 4: they wait max_wait for the others
