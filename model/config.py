@@ -187,6 +187,13 @@ class RefineConfig:
     context: bool = True
     # a ninth output, the logit that the box points the wrong way: above 0 the refined box turns by pi
     flip: bool = True
+    # refiners applied in turn, each fitted on the boxes the ones before it refined (a cascade): a later
+    # stage sees boxes closer to their objects, so it learns finer corrections and a sharper IoU
+    stages: int = 2
+
+    def __post_init__(self) -> None:
+        if self.stages < 1:
+            raise ValueError(f"stages: {self.stages}; expected at least 1")
 
 
 @dataclass(frozen=True)
@@ -274,8 +281,9 @@ def _default_sector_voxels(name: str) -> int:
 
 
 def _refine_config(d: dict | None) -> RefineConfig | None:
-    """A checkpoint's refiner config; one saved before `context` and `flip` existed had neither."""
-    return RefineConfig(**{"context": False, "flip": False, **_tuples(d)}) if d else None
+    """A checkpoint's refiner config; one saved before `context`, `flip` or `stages` existed had neither
+    part and one stage."""
+    return RefineConfig(**{"context": False, "flip": False, "stages": 1, **_tuples(d)}) if d else None
 
 
 def _tuples(d: dict) -> dict:

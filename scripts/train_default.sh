@@ -5,9 +5,10 @@
 # 19, then 1,200 steps of 4 scans on streams 21 and 23, then 2,500 steps on stream 31; lower peak learning
 # rate, half that in the last twelve, direction loss weight 1), trains the box refiner on the last phase's
 # boxes (800 scans each of streams 28 and 29, 8 epochs, 64 points a box, with its context layer and flip
-# output: `phim train-refiner`), evaluates the result on the 200 held-out simulated scans (stream 7) and
-# copies it to model/weights/tiny-sim.pt. `tiny` reads x, y, z; the shipped weights' phases 1-8 read
-# intensity too and phases 9-18 left it out (docs/model-card.md).
+# output: `phim train-refiner`) and its second stage on the first stage's boxes (`--keep`), evaluates the
+# result on the 200 held-out simulated scans (stream 7) and copies it to model/weights/tiny-sim.pt. `tiny`
+# reads x, y, z; the shipped weights' phases 1-8 read intensity too and phases 9-18 left it out
+# (docs/model-card.md).
 # Usage: bash scripts/train_default.sh [RUN_DIR]   (default runs/default; an interrupted phase resumes;
 # the fine-tunes go to RUN_DIR/finetune, RUN_DIR/finetune2, ... RUN_DIR/finetune17)
 # Environment: STEPS (3900), FT_STEPS (2600), FT2_STEPS (3000), FT3_STEPS (6000), FT4_STEPS (4000),
@@ -72,11 +73,17 @@ quad "$RUN/finetune15" 21 "${FT15_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/f
 quad "$RUN/finetune16" 23 "${FT16_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune15/model.pt"
 # phase 18: the simulator's world of objects made of parts (checkpoints/newworld-ft1)
 phase "$RUN/finetune17" 31 "${FT17_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune16/model.pt"
+# the refiner: its first stage on phase 18's boxes, then (--keep) the second on the first stage's boxes
 LAST="$RUN/refined"
-mkdir -p "$LAST"
+mkdir -p "$RUN/refined1" "$LAST"
+refiner=(--seed 28 --seed 29 --scans 800 --epochs 8 --points 64 --threads "${THREADS:-0}")
+if [ ! -f "$RUN/refined1/model.pt" ]; then
+  "$PHIM" train-refiner --checkpoint "$RUN/finetune17/model.pt" --out "$RUN/refined1/model.pt" --stages 1 \
+    "${refiner[@]}"
+fi
 if [ ! -f "$LAST/model.pt" ]; then
-  "$PHIM" train-refiner --checkpoint "$RUN/finetune17/model.pt" --out "$LAST/model.pt" --seed 28 --seed 29 \
-    --scans 800 --epochs 8 --points 64 --threads "${THREADS:-0}"
+  "$PHIM" train-refiner --checkpoint "$RUN/refined1/model.pt" --keep --stages 2 --out "$LAST/model.pt" \
+    "${refiner[@]}"
 fi
 "$PHIM" eval --checkpoint "$LAST/model.pt" --data sim --scans 200 --seed 7 --json \
   --predictions "$LAST/predictions-sim-seed7.npz" | tee "$LAST/eval-sim-seed7.json"

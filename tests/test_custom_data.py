@@ -302,7 +302,7 @@ def test_train_refiner_reads_a_custom_folder(tmp_path: Path):
     args = ["train-refiner", "--data", f"custom:{data}", "--class-map", KITTI_MAP, "--out", str(out)]
     done = CliRunner().invoke(app, [*args, "--seed", "1", "--seed", "2", "--epochs", "1", "--threads", "1"])
     assert done.exit_code == 0, done.output
-    assert "from 1 x 2 scans of custom:" in done.output
+    assert "from the boxes of 1 x 2 scans of custom:" in done.output and "stage 2: " in done.output
     meta = read_checkpoint(out)["meta"]["refiner"]
     assert meta["data"] == f"custom:{data}" and meta["seeds"] == [1] and meta["scans"] == 2
     assert load_checkpoint(out).refiner is not None

@@ -85,7 +85,8 @@ def test_bench_refiner_times_the_shipped_refiner_on_a_whole_turns_boxes(tmp_path
     bench = json.loads(result.output.strip().splitlines()[-1])
     assert bench["config"] == "tiny" and bench["repeats"] == 2 and bench["boxes"] > 0 and bench["points"] > 0
     assert bench["streams"] == streams and bench["points"] == len(scan)
-    assert bench["points_per_box"] == resolve_checkpoint("default")[0].cfg.refine.points
+    refine = resolve_checkpoint("default")[0].cfg.refine
+    assert (bench["points_per_box"], bench["stages"]) == (refine.points, refine.stages)
     assert min(bench["lookup_p50_ms"], bench["pointnet_p50_ms"], bench["refine_p50_ms"]) > 0
 
 

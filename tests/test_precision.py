@@ -43,9 +43,11 @@ BF16 = {"device_type": "cpu", "dtype": torch.bfloat16}
 # (fixed step), the next by at most 0.028 (2026-11-29); its IoU score puts fewer boxes above 0.3
 MIN_SCORE, MATCH_M, MIN_MATCHED, MAX_SCORE_DIFF, MAX_SCORE_OUTLIER = 0.2, 0.1, 0.9, 0.04, 0.12
 # The refiner with its context layer (2026-12-02) moves more of them: on KITTI 000000, 3 of 21 boxes (eager)
-# and 4 of 21 (fixed step) 0.17-0.67 m, their refined scores by up to 0.08; the detector alone stays within
-# the bounds above, and the refined boxes are held to these
-REFINED_MATCH_M, REFINED_MAX_SCORE_DIFF = 1.0, 0.06
+# and 4 of 21 (fixed step) 0.17-0.67 m, their refined scores by up to 0.08; its second stage re-reads the
+# points around the first's boxes: 4 of 21 moved 0.1-0.68 m in both engines, their scores by up to 0.15, 90 %
+# of them within 0.085 (eager) and 0.043 (fixed step). The detector alone stays within the bounds above, and
+# the refined boxes are held to these
+REFINED_MATCH_M, REFINED_MAX_SCORE_DIFF, REFINED_MAX_SCORE_OUTLIER = 1.0, 0.1, 0.2
 
 
 def test_fp32_is_no_autocast_and_bf16_is():
@@ -185,9 +187,10 @@ def assert_agree(
     min_boxes: int = 15,
     match_m: float = MATCH_M,
     max_score_diff: float = MAX_SCORE_DIFF,
+    max_score_outlier: float = MAX_SCORE_OUTLIER,
 ) -> None:
     """Most of the fp32 boxes scoring >= MIN_SCORE (at least `min_boxes` of them) have a bf16 box of their
-    class within `match_m`; their scores differ by at most `max_score_diff` (90 %) and MAX_SCORE_OUTLIER."""
+    class within `match_m`; their scores differ by at most `max_score_diff` (90 %) and `max_score_outlier`."""
     keep = fp32.scores >= MIN_SCORE
     boxes, labels, scores = fp32.boxes[keep], fp32.labels[keep], fp32.scores[keep]
     assert len(boxes) >= min_boxes  # enough boxes for the fraction to mean something
@@ -197,7 +200,7 @@ def assert_agree(
     matched = nearest <= match_m
     assert matched.float().mean() >= MIN_MATCHED, f"{matched.float().mean():.3f} of the fp32 boxes matched"
     score_diff = (scores[matched] - bf16.scores[j[matched]]).abs()
-    assert score_diff.quantile(0.9) <= max_score_diff and score_diff.max() <= MAX_SCORE_OUTLIER
+    assert score_diff.quantile(0.9) <= max_score_diff and score_diff.max() <= max_score_outlier
     assert score_diff.max() > 0  # bf16 did change something
 
 
@@ -213,6 +216,7 @@ def test_bf16_detections_agree_with_fp32_on_kitti(engine: Engines, refiner: bool
     assert (bf16.boxes.dtype, bf16.scores.dtype) == (torch.float32, torch.float32)
     assert all(t.dtype == torch.float32 for t in _float_tensors(state))
     if refiner:
-        assert_agree(fp32, bf16, match_m=REFINED_MATCH_M, max_score_diff=REFINED_MAX_SCORE_DIFF)
+        bounds = dict(match_m=REFINED_MATCH_M, max_score_diff=REFINED_MAX_SCORE_DIFF)
+        assert_agree(fp32, bf16, **bounds, max_score_outlier=REFINED_MAX_SCORE_OUTLIER)
     else:
         assert_agree(fp32, bf16)

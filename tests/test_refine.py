@@ -42,7 +42,7 @@ from model.layers.refine import (
 )
 from model.sectors import split_turn
 from model.stream import StreamingDetector
-from model.train.refine import Proposals, fit
+from model.train.refine import Proposals, fit, scan_proposals
 
 CFG = RefineConfig(points=16)
 
@@ -180,13 +180,47 @@ def test_the_refiner_learns_from_the_points_which_boxes_point_the_wrong_way():
     assert float(ahead.float().mean()) > 0.95
 
 
-def test_a_refiner_saved_before_context_and_flip_loads_as_it_was_trained():
+def test_a_refiner_saved_before_context_flip_and_stages_loads_as_it_was_trained():
     d = dataclasses.replace(tiny(), refine=RefineConfig()).to_dict()
-    del d["refine"]["context"], d["refine"]["flip"]
+    del d["refine"]["context"], d["refine"]["flip"], d["refine"]["stages"]
     cfg = PHiMConfig.from_dict(d).refine
-    assert cfg is not None and not cfg.context and not cfg.flip
+    assert cfg is not None and not cfg.context and not cfg.flip and cfg.stages == 1
     refiner = PHiM(dataclasses.replace(tiny(), refine=cfg)).refiner
     assert refiner.out[-1].out_features == 8 and not hasattr(refiner, "context_point")
+    assert refiner.chain() == [refiner]
+
+
+def test_a_cascade_chains_its_stages_and_the_first_is_drawn_as_a_single_stage():
+    """`RefineConfig.stages`: the stages in turn; stage 1's initial weights are those of a one-stage
+    refiner (a later stage draws after it)."""
+    torch.manual_seed(0)
+    one = PHiM(dataclasses.replace(tiny(), refine=RefineConfig(stages=1))).refiner
+    torch.manual_seed(0)
+    three = PHiM(dataclasses.replace(tiny(), refine=RefineConfig(stages=3))).refiner
+    chain = three.chain()
+    assert len(chain) == 3 and chain[-1].next_stage is None and one.next_stage is None
+    own = {k: v for k, v in three.state_dict().items() if not k.startswith("next_stage.")}
+    assert own.keys() == one.state_dict().keys() and all(
+        torch.equal(own[k], v) for k, v in one.state_dict().items()
+    )
+    assert not torch.equal(chain[1].out[-1].weight, chain[0].out[-1].weight)
+    with pytest.raises(ValueError, match="stages: 0"):
+        RefineConfig(stages=0)
+
+
+def test_a_later_stage_learns_from_the_boxes_the_stages_before_it_refined(shipped):
+    """`scan_proposals(refined=k)`: the detector's boxes as the first k stages return them (re-sorted by
+    their refined score), with those boxes' points; k = 0: the detector's own."""
+    scan = scan_source("sim", 5, shuffle=False)(0)
+    sectors = scan_sectors(scan, shipped.cfg.vfe.point_features, shipped.cfg.sectors_per_turn)
+    with torch.inference_mode():
+        _, enc = shipped.forward_turn(sectors)
+        det = shipped.detect([enc.sectors])[0]
+        once = refine_many(shipped.refiner, [det], [torch.cat(sectors)], stages=1)[0]
+    raw = scan_proposals(shipped, shipped.refiner.cfg, scan)
+    later = scan_proposals(shipped, shipped.refiner.cfg, scan, refined=1)
+    assert len(det) >= 10 and torch.equal(raw.boxes, det.boxes) and torch.equal(later.boxes, once.boxes)
+    assert torch.equal(later.scores, once.scores) and not torch.equal(later.local, raw.local)
 
 
 def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_none():
@@ -205,16 +239,17 @@ def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_
 
 
 def _refine_plain(refiner, det: Detections, points: torch.Tensor) -> Detections:
-    """The refiner on one prediction, its boxes looked up every point against every box: the twin of
-    `refine_many`'s per-stream lookups and batched forward."""
-    local, counts = box_points_reference(points, det.boxes, refiner.cfg)
-    out = refiner(local, counts, det.boxes, det.scores, det.labels)
-    a = refiner.cfg.iou_weight
-    scores = det.scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
+    """The refiner's stages in turn on one prediction, its boxes looked up every point against every box:
+    the twin of `refine_many`'s per-stream lookups and batched forward per stage."""
+    boxes, scores, a = det.boxes, det.scores, refiner.cfg.iou_weight
+    for stage in refiner.chain():
+        local, counts = box_points_reference(points, boxes, stage.cfg)
+        out = stage(local, counts, boxes, scores, det.labels)
+        scores = det.scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)  # the detector's and this IoU
+        boxes = apply_residual(boxes, out)
+        if stage.cfg.flip:
+            boxes[:, 6] = torch.where(out[:, 8] > 0, boxes[:, 6] + math.pi, boxes[:, 6])
     order = torch.argsort(scores, descending=True, stable=True)
-    boxes = apply_residual(det.boxes, out)
-    if refiner.cfg.flip:
-        boxes[:, 6] = torch.where(out[:, 8] > 0, boxes[:, 6] + math.pi, boxes[:, 6])
     return Detections(boxes[order], scores[order], det.labels[order])
 
 
@@ -229,12 +264,15 @@ def torch_threads(request):
 @torch.no_grad()
 @pytest.mark.parametrize(
     "cfg",
-    [RefineConfig(points=16, context=False, flip=False), RefineConfig(points=16, context=True, flip=True)],
+    [
+        RefineConfig(points=16, context=False, flip=False, stages=1),
+        RefineConfig(points=16, context=True, flip=True, stages=2),
+    ],
 )
 def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone(torch_threads: int, cfg):
     """`refine_many` (the engines' path: lookups per stream, on torch's threads at once where it has
-    several, one forward over the batch's boxes, in chunks on the CPU) against the plain twin per stream;
-    streams of 40, 0 and 300 boxes (two chunks)."""
+    several, one forward over the batch's boxes, in chunks on the CPU; per stage of a cascade) against the
+    plain twin per stream; streams of 40, 0 and 300 boxes (two chunks)."""
     torch.manual_seed(0)
     refiner = PHiM(dataclasses.replace(tiny(), refine=cfg)).refiner.eval()
     g = torch.Generator().manual_seed(9)
@@ -257,15 +295,30 @@ def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone(torch_
 
 
 def test_train_refiner_writes_the_frozen_detector_with_a_refiner_and_train_starts_without_it(tmp_path: Path):
-    out = tmp_path / "refined.pt"
-    cmd = [sys.executable, "-m", "phim", "train-refiner", "--out", str(out), "--seed", "5", "--points", "8"]
-    subprocess.run([*cmd, "--scans", "2", "--epochs", "1", "--threads", "1"], check=True, capture_output=True)
-    refined = load_checkpoint(out, expected=tiny())  # `tiny` with a refiner is still `tiny`
-    assert (
-        refined.cfg.refine == RefineConfig(points=8)
-        and refined.cfg.refine.flip
-        and refined.refiner is not None
+    """A one-stage refiner, then (--keep) a second stage fitted on its boxes, the first kept as it was."""
+    one, out = tmp_path / "one.pt", tmp_path / "refined.pt"
+    cmd = [sys.executable, "-m", "phim", "train-refiner", "--seed", "5", "--points", "8", "--scans", "2"]
+    cmd += ["--epochs", "1", "--threads", "1"]
+    subprocess.run([*cmd, "--out", str(one), "--stages", "1"], check=True, capture_output=True)
+    args = ["--checkpoint", str(one), "--keep", "--out", str(out)]
+    subprocess.run([*cmd, *args], check=True, capture_output=True)
+    first = load_checkpoint(one, expected=tiny())  # `tiny` with a refiner is still `tiny`
+    refined = load_checkpoint(out, expected=tiny())
+    assert first.cfg.refine == RefineConfig(points=8, stages=1) and len(first.refiner.chain()) == 1
+    assert refined.cfg.refine == RefineConfig(points=8) and refined.cfg.refine.flip
+    assert len(refined.refiner.chain()) == 2
+    kept = {k: v for k, v in refined.refiner.state_dict().items() if not k.startswith("next_stage.")}
+    assert all(torch.equal(kept[k], v) for k, v in first.refiner.state_dict().items())
+    torch.manual_seed(0)  # as the command draws the refiner's initial weights
+    fresh = PHiM(refined.cfg).refiner
+    for stage, drawn in zip(refined.refiner.chain(), fresh.chain(), strict=True):  # each stage was fitted
+        assert not torch.equal(stage.out[-1].weight, drawn.out[-1].weight)
+    again = subprocess.run(
+        [*cmd, "--checkpoint", str(out), "--keep", "--out", str(tmp_path / "x.pt")],
+        capture_output=True,
+        text=True,
     )
+    assert again.returncode == 2 and "--stages 2 adds none" in again.stderr, again.stderr
     default, _ = resolve_checkpoint("default")
     plain = {k: v for k, v in refined.state_dict().items() if not k.startswith("refiner.")}
     base = {k: v for k, v in default.state_dict().items() if not k.startswith("refiner.")}

@@ -3,6 +3,7 @@ and labels that keep clear of the scenery."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -131,6 +132,25 @@ def test_windows_let_rays_into_the_building():
     facade = tags[hits.solid] == BUILDING
     assert y[inner].min() > y[facade].min() + 2.0  # the facade layer and a cavity of 2 m or more
     assert np.ptp(y[facade]) > 0.3  # bays stepping back and forth, recessed doors: not one flat wall
+
+
+@pytest.mark.parametrize("awnings", [True, False])
+def test_shop_awnings_roof_part_of_the_sidewalk(awnings: bool):
+    """Shopfront bays with awnings (`FacadeStyle.awning_prob`): returns over the sidewalk, 2.3-3.4 m above
+    it, where a building without them has nothing (seen by a VLP-32C: beams up to 15 degrees)."""
+    road = Road(np.zeros(2), 0.0, 1, 3.5, (False, False), 2.0, 3.0, 0.0)  # sidewalk: y 3.5 to 6.5
+    style = dataclasses.replace(URBAN_FACADE, shopfront_prob=1.0, awning_prob=1.0 if awnings else 0.0)
+    solids = TaggedSolidList()
+    rng = np.random.default_rng(4)
+    building(solids, rng, Front(road, 1, (-15.0, 15.0), 0.5, 15.0), _flat(), 3, style)
+    rays = Rays.spinning(1000, sensor_spec(Sensor.VLP32C).elevations_deg)
+    hits = cast_solids(solids.build(), rays, 1.0, rng)
+    x, y, z = hits.t * rays.directions(*np.divmod(hits.ray, len(rays.elevation)))
+    over = (y > 3.5) & (y < 6.5) & (np.abs(x) < 15) & (z > 2.0 - HEIGHT) & (z < 3.5 - HEIGHT)
+    if awnings:
+        assert over.sum() > 20 and z[over].min() > 1.9 - HEIGHT  # the valance hangs at most 0.4 m lower
+    else:
+        assert over.sum() == 0
 
 
 def test_a_hedge_is_porous_and_irregular():

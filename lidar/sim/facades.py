@@ -37,9 +37,14 @@ class FacadeStyle:
     bay: tuple[float, float] = (4.0, 12.0)  # bay length; a bay steps forward or back with chance step_prob
     step_prob: float = 0.4
     step: tuple[float, float] = (-0.8, 1.5)  # metres (positive: further back)
+    # a canopy over the sidewalk in front of a shopfront bay (shop awnings, entrance canopies): people walk
+    # under them, so a pedestrian's column is not always empty above the head
+    awning_prob: float = 0.0  # per shopfront bay
+    awning_reach: tuple[float, float] = (1.2, 3.0)  # out from the facade (m), kept 0.5 m short of the curb
+    awning_clearance: tuple[float, float] = (2.3, 3.0)  # its underside above the sidewalk (m)
 
 
-URBAN_FACADE = FacadeStyle()
+URBAN_FACADE = FacadeStyle(awning_prob=0.7)
 HOUSE_FACADE = FacadeStyle((2.6, 3.0), (2.7, 3.1), (0.9, 1.6), (1.0, 2.6), (0.8, 1.0), (1.0, 1.4), 0.0, 1.0)
 
 
@@ -170,8 +175,27 @@ def _bay(
     solids.boxes(
         f.xy(ds, np.full(len(ds), recess)), z - 0.1, heads[0], window, 0.1, f.road.yaw, rng.uniform(0.1, 0.4)
     )
+    if look.shopfront and rng.random() < style.awning_prob:
+        _awning(solids, rng, f, z, style)
     _interior(solids, rng, f, (z, top), d0 + deep, look)
     return top - z
+
+
+def _awning(
+    solids: TaggedSolidList, rng: np.random.Generator, f: Front, z: float, style: FacadeStyle
+) -> None:
+    """A canopy in front of a bay: a thin roof out over the sidewalk and a valance hanging at its edge."""
+    reach = min(rng.uniform(*style.awning_reach), f.setback + f.road.sidewalk - 0.5)
+    if reach <= f.setback:
+        return  # the facade stands too far back for it to reach the sidewalk
+    low = z + rng.uniform(*style.awning_clearance)
+    along, length = np.array([(f.s[0] + f.s[1]) / 2]), f.s[1] - f.s[0] - 0.2
+    refl = rng.uniform(0.15, 0.5)
+    roof = f.xy(along, np.array([f.setback - reach / 2]))
+    solids.boxes(roof, low, low + 0.1, length, reach, f.road.yaw, refl)
+    valance = rng.uniform(0.2, 0.4)
+    edge = f.xy(along, np.array([f.setback - reach + 0.03]))
+    solids.boxes(edge, low - valance, low + 0.1, length, 0.06, f.road.yaw, refl)
 
 
 def _interior(

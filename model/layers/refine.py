@@ -8,8 +8,10 @@ A PointNet (a shared per-point MLP, max-pooled, with the box's class, log size, 
 range; with `RefineConfig.context` a second per-point layer reading each point with the pooled feature)
 predicts a residual (dx, dy, dz in the box frame, log size ratios, yaw change on the axis), the refined
 box's 3D IoU and, with `RefineConfig.flip`, whether the box points the wrong way (the detector's
-direction comes from 0.8 m BEV cells; the points can tell a car's front from its back). The refined score
-is score^(1 - a) * iou^a (`RefineConfig.iou_weight`), as the head's IoU rectification.
+direction comes from 0.8 m BEV cells; the points can tell a car's front from its back). With
+`RefineConfig.stages` > 1 the refiners run in turn (a cascade: each reads the points around the boxes the
+one before it refined, with that one's score). The refined score is score^(1 - a) * iou^a
+(`RefineConfig.iou_weight`), as the head's IoU rectification: the detector's score and the last stage's IoU.
 
 `box_points` finds the points through a grid index of 1 m cells: a numba kernel on the CPU
 (`model.ops.box_points_numba`), tensor ops elsewhere (`box_points_torch`); `box_points_reference`, the plain
@@ -137,7 +139,9 @@ def _inside(
 
 
 class BoxRefiner(nn.Module):
-    def __init__(self, num_classes: int, cfg: RefineConfig):
+    """One stage of the refiner; `next_stage` the one after it (`RefineConfig.stages`), or None."""
+
+    def __init__(self, num_classes: int, cfg: RefineConfig, stage: int = 1):
         super().__init__()
         self.cfg = cfg
         self.num_classes = num_classes
@@ -155,11 +159,16 @@ class BoxRefiner(nn.Module):
             nn.ReLU(),
             nn.Linear(64, 9 if cfg.flip else 8),
         )
+        self.next_stage = BoxRefiner(num_classes, cfg, stage + 1) if stage < cfg.stages else None
+
+    def chain(self) -> list[BoxRefiner]:
+        """This stage and every one after it, in order."""
+        return [self, *(self.next_stage.chain() if self.next_stage is not None else [])]
 
     def forward(self, local: Tensor, counts: Tensor, boxes: Tensor, scores: Tensor, labels: Tensor) -> Tensor:
-        """local (B, P, 3) box-frame points, counts (B,), boxes (B, 7), scores (B,), labels (B,) ->
-        (B, 8 or 9): the residual (dx, dy, dz, dlog l, dlog w, dlog h, dyaw), the refined box's IoU logit
-        and, with `cfg.flip`, the logit that the box points the wrong way."""
+        """This stage alone: local (B, P, 3) box-frame points, counts (B,), boxes (B, 7), scores (B,),
+        labels (B,) -> (B, 8 or 9): the residual (dx, dy, dz, dlog l, dlog w, dlog h, dyaw), the refined
+        box's IoU logit and, with `cfg.flip`, the logit that the box points the wrong way."""
         half = boxes[:, None, 3:6] / 2  # (B, 1, 3)
         h = self.point(torch.cat((local, local / half), 2))  # (B, P, W)
         f = h.amax(1)  # (B, W)
@@ -220,29 +229,37 @@ def refine(refiner: BoxRefiner, det: Detections, points: Tensor) -> Detections:
 
 
 @torch.no_grad()
-def refine_many(refiner: BoxRefiner, dets: list[Detections], points: list[Tensor]) -> list[Detections]:
+def refine_many(
+    refiner: BoxRefiner, dets: list[Detections], points: list[Tensor], stages: int | None = None
+) -> list[Detections]:
     """Several predictions (a batch's streams), each with the raw points (N_i, >=3) of the sectors it
-    covers -> each refined as `refine` would. The points are looked up where they lie (the host, in a
-    server: no copy of them, no wait on a device), then one PointNet forward runs over every box of the
-    batch on the refiner's device (on a CPU in chunks of `_CPU_CHUNK` boxes: 1,040 boxes took 1.5-1.75x as
-    long in one forward as in chunks of 160)."""
-    dev, cfg = next(refiner.parameters()).device, refiner.cfg
+    covers -> each refined as `refine` would, by the first `stages` stages of the chain (None: all). Per
+    stage the points are looked up where they lie (the host, in a server: no copy of them, no wait on a
+    device), then one PointNet forward runs over every box of the batch on the refiner's device (on a CPU
+    in chunks of `_CPU_CHUNK` boxes: 1,040 boxes took 1.5-1.75x as long in one forward as in chunks of
+    160)."""
+    dev = next(refiner.parameters()).device
     sizes = [len(d) for d in dets]
     if sum(sizes) == 0:
         return list(dets)
     some = [i for i, d in enumerate(dets) if len(d)]  # the streams with boxes
-    boxes_at_points = [dets[i].boxes.to(points[i].device) for i in some]
-    looked = box_points_many([points[i] for i in some], boxes_at_points, cfg)
-    local = torch.cat([lc[0] for lc in looked]).to(dev)  # (T, P, 3) T: the batch's boxes
-    counts = torch.cat([lc[1] for lc in looked]).to(dev)  # (T,)
-    boxes = torch.cat([d.boxes for d in dets]).to(dev)  # (T, 7)
-    scores = torch.cat([d.scores for d in dets]).to(dev)  # (T,)
+    boxes = torch.cat([d.boxes for d in dets]).to(dev)  # (T, 7) T: the batch's boxes
+    detected = torch.cat([d.scores for d in dets]).to(dev)  # (T,)
     labels = torch.cat([d.labels for d in dets]).to(dev)  # (T,)
-    out = refiner_forward(refiner, local, counts, boxes, scores, labels)  # (T, 8 or 9)
-    refined = apply_output(boxes, out, cfg)
-    a = cfg.iou_weight
-    refined_scores = scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
-    split = zip(refined.split(sizes), refined_scores.split(sizes), labels.split(sizes), dets, strict=True)
+    scores = detected
+    for stage in refiner.chain()[:stages]:
+        cfg = stage.cfg
+        per_stream = boxes.split(sizes)
+        looked = box_points_many(
+            [points[i] for i in some], [per_stream[i].to(points[i].device) for i in some], cfg
+        )
+        local = torch.cat([lc[0] for lc in looked]).to(dev)  # (T, P, 3)
+        counts = torch.cat([lc[1] for lc in looked]).to(dev)  # (T,)
+        out = refiner_forward(stage, local, counts, boxes, scores, labels)  # (T, 8 or 9)
+        boxes = apply_output(boxes, out, cfg)
+        a = cfg.iou_weight
+        scores = detected.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
+    split = zip(boxes.split(sizes), scores.split(sizes), labels.split(sizes), dets, strict=True)
     return [_sorted(b, s, lab).to(d.boxes.device) for b, s, lab, d in split]
 
 

@@ -250,10 +250,11 @@ class RefinerBench:
     points: int  # the turn's points, which every step's refiner searches (each stream's, on the host)
     boxes: int  # the detector's boxes on the whole turn, which it refines (each stream's)
     points_per_box: int  # RefineConfig.points
+    stages: int  # RefineConfig.stages: refine_many runs a lookup and a PointNet per stage
     repeats: int
-    lookup_p50_ms: float  # box_points_many: the batch's lookups
-    pointnet_p50_ms: float  # the BoxRefiner forward over the batch's boxes
-    refine_p50_ms: float  # refine_many(): both, the residuals and the re-sort
+    lookup_p50_ms: float  # box_points_many: the batch's lookups (one stage's)
+    pointnet_p50_ms: float  # the first stage's forward over the batch's boxes (one stage's)
+    refine_p50_ms: float  # refine_many(): every stage's lookups and PointNet, the residuals and the re-sort
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -264,7 +265,7 @@ def bench_refiner(
 ) -> RefinerBench:
     """The box refiner on the detector's boxes for the whole `turn` (what it does after every step with its
     buffer loaded) for a batch of `streams` streams with that turn, as a server holds them (the points on
-    the host), `repeats` times each: the point lookups, the PointNet and all of `refine_many`."""
+    the host), `repeats` times each: one stage's point lookups and PointNet, and all of `refine_many`."""
     if model.refiner is None:
         raise ValueError(f"the model ({model.cfg.name}) has no box refiner")
     dev, cfg = model.device, model.refiner.cfg
@@ -294,6 +295,7 @@ def bench_refiner(
         points=int(points[0].shape[0]),
         boxes=len(dets[0]),
         points_per_box=cfg.points,
+        stages=cfg.stages,
         repeats=repeats,
         lookup_p50_ms=p50["lookup"],
         pointnet_p50_ms=p50["pointnet"],

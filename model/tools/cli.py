@@ -294,12 +294,13 @@ def bench_refiner_cmd(
         return
     click.echo(
         f"input: {source} ({result['points']} points, {result['boxes']} boxes, {result['points_per_box']} "
-        f"points read per box) x {streams} streams; {result['config']} on {result['device']}, "
-        f"{result['threads']} threads"
+        f"points read per box, {result['stages']} stages) x {streams} streams; {result['config']} on "
+        f"{result['device']}, {result['threads']} threads"
     )
     click.echo("\n| part | p50 ms |\n|---|---|")
     for part in ("lookup", "pointnet", "refine"):
-        click.echo(f"| {part} | {result[part + '_p50_ms']} |")
+        name = part if part == "refine" else f"{part} (a stage)"
+        click.echo(f"| {name} | {result[part + '_p50_ms']} |")
 
 
 @click.command()

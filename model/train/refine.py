@@ -1,7 +1,8 @@
 """Training the box refiner (model.layers.refine) on a trained, frozen detector's own boxes.
 
-1. `proposals`: the detector's full-turn detections on simulated scans, each with the raw points around
-   it (`box_points`, as serving reads them) and its best-overlapping true box of the same class.
+1. `proposals`: the detector's full-turn detections on simulated scans (for a later stage of the cascade,
+   `RefineConfig.stages`: as the stages before it refined them), each with the raw points around it
+   (`box_points`, as serving reads them) and its best-overlapping true box of the same class.
 2. `fit`: the refiner learns the residual to that true box where the 3D IoU is at least `MATCH_IOU` (L1
    plus 1 - IoU of the refined box; with `RefineConfig.flip` also whether it points the wrong way) and, on
    every box, the refined box's IoU (binary cross-entropy; 0 for a box on no object).
@@ -26,7 +27,7 @@ from model.eval.metrics import iou_matrix
 from model.eval.runner import scan_sectors
 from model.geometry.boxes import rotated_iou_3d_aligned
 from model.layers.phim_block import StreamLayout
-from model.layers.refine import BoxRefiner, apply_residual, box_points, residual_target
+from model.layers.refine import BoxRefiner, apply_residual, box_points, refine_many, residual_target
 
 log = logging.getLogger(__name__)
 
@@ -61,13 +62,17 @@ FIELDS = tuple(Proposals.__dataclass_fields__)
 
 
 @torch.inference_mode()
-def scan_proposals(model: PHiM, cfg: RefineConfig, scan: LabeledScan) -> Proposals:
-    """The detector's full-turn boxes on one scan, with their points and their true boxes."""
+def scan_proposals(model: PHiM, cfg: RefineConfig, scan: LabeledScan, refined: int = 0) -> Proposals:
+    """The detector's full-turn boxes on one scan, after the model's first `refined` refiner stages, with
+    their points and their true boxes."""
     n = model.cfg.sectors_per_turn
     sectors = scan_sectors(scan, model.cfg.vfe.point_features, n)
     enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
     det = model.detect([enc.sectors])[0]
-    local, counts = box_points(torch.cat(sectors), det.boxes, cfg)
+    points = torch.cat(sectors)
+    if refined and model.refiner is not None:
+        det = refine_many(model.refiner, [det], [points], stages=refined)[0]
+    local, counts = box_points(points, det.boxes, cfg)
     gt = scan.gt
     iou = np.zeros((len(det), len(gt)), np.float32)
     if len(det) and len(gt):
@@ -79,13 +84,15 @@ def scan_proposals(model: PHiM, cfg: RefineConfig, scan: LabeledScan) -> Proposa
     return Proposals(local, counts, det.boxes, det.scores, det.labels, truth.float(), best_iou.float())
 
 
-def proposals(model: PHiM, cfg: RefineConfig, source: Callable[[int], LabeledScan], scans: int) -> Proposals:
+def proposals(
+    model: PHiM, cfg: RefineConfig, source: Callable[[int], LabeledScan], scans: int, refined: int = 0
+) -> Proposals:
     """`scan_proposals` of scans source(0) .. source(scans - 1)."""
     model.eval()
     t0 = time.perf_counter()
     parts = []
     for i in range(scans):
-        parts.append(scan_proposals(model, cfg, source(i)))
+        parts.append(scan_proposals(model, cfg, source(i), refined))
         if (i + 1) % 100 == 0:
             boxes = sum(map(len, parts))
             log.info("proposals: %d scans, %d boxes, %.0f s", i + 1, boxes, time.perf_counter() - t0)

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
@@ -14,6 +16,13 @@ from lidar.sources import scan_source
 from model.config import RefineConfig
 from model.tools.options import checkpoint_option, class_map_option, data_option, threads_option
 from model.train.refine import MATCH_IOU, Proposals
+
+if TYPE_CHECKING:
+    from model.detector import PHiM
+
+# one proposal worker's task: checkpoint, refiner config, data, class map, sim stream, scans, and how many of
+# the checkpoint's refiner stages refine the detector's boxes first
+Job = tuple[Path, RefineConfig, str, ClassMap, int, int, int]
 
 
 @click.command()
@@ -54,6 +63,20 @@ from model.train.refine import MATCH_IOU, Proposals
     show_default=True,
     help="Also predict whether a box points the wrong way, and turn it (RefineConfig.flip).",
 )
+@click.option(
+    "--stages",
+    type=click.IntRange(1),
+    default=RefineConfig.stages,
+    show_default=True,
+    help="Refiners applied in turn, each fitted on the boxes of the ones before (RefineConfig.stages).",
+)
+@click.option(
+    "--keep/--no-keep",
+    default=False,
+    show_default=True,
+    help="Keep the refiner stages the checkpoint has (the same points, context and flip) and fit only the "
+    "stages after them.",
+)
 @threads_option
 def train_refiner_cmd(
     checkpoint: str,
@@ -67,35 +90,32 @@ def train_refiner_cmd(
     points: int,
     context: bool,
     flip: bool,
+    stages: int,
+    keep: bool,
     threads: int,
 ) -> None:
     """Train the box refiner on the detector's own boxes (the detector is frozen): on simulated scans, or on
-    the training scans of --data (at most --scans of them)."""
-    import dataclasses
-
+    the training scans of --data (at most --scans of them). Each stage of a cascade is fitted in turn, on
+    the boxes the stages before it refined (one more pass over the scans a stage); --out holds the stages
+    fitted so far after each."""
     import torch
 
-    from model.checkpoint import read_checkpoint, resolve_checkpoint, save_checkpoint
+    from model.checkpoint import read_checkpoint, resolve_checkpoint
     from model.detector import PHiM
-    from model.train.refine import fit
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if threads:
         torch.set_num_threads(threads)
     detector, path = resolve_checkpoint(checkpoint)
-    cfg = dataclasses.replace(detector.cfg, refine=RefineConfig(points=points, context=context, flip=flip))
+    refine = RefineConfig(points=points, context=context, flip=flip, stages=stages)
+    kept = _kept_stages(detector.cfg.refine, refine) if keep else 0
+    cfg = dataclasses.replace(detector.cfg, refine=refine)
     torch.manual_seed(0)  # the refiner's initial weights
     model = PHiM(cfg)
-    weights = {k: v for k, v in detector.state_dict().items() if not k.startswith("refiner.")}
-    model.load_state_dict(weights, strict=False)
+    weights = {k: v for k, v in detector.state_dict().items() if keep or not k.startswith("refiner.")}
+    model.load_state_dict(weights, strict=False)  # the detector, and with --keep the fitted stages
     if data != "sim":  # one pass over the files (a second stream would read the same scans)
         seeds, scans = seeds[:1], min(scans, len(scan_source(data, 0, classes=class_map)))
-    jobs = [(path, cfg.refine, data, class_map, s, scans) for s in seeds]
-    with ProcessPoolExecutor(len(jobs), mp_context=multiprocessing.get_context("spawn")) as pool:
-        boxes = Proposals.cat(list(pool.map(_stream_proposals, jobs)))
-    on_objects = int((boxes.iou >= MATCH_IOU).sum())
-    click.echo(f"{len(boxes)} boxes from {len(seeds)} x {scans} scans of {data}, {on_objects} on objects")
-    fit(model.refiner, boxes, epochs, lr)
     meta = read_checkpoint(path)["meta"] | {
         "refiner": {
             "detector": path.name,
@@ -104,23 +124,65 @@ def train_refiner_cmd(
             "scans": scans,
             "epochs": epochs,
             "lr": lr,
+            "stages_kept": kept,
         }
     }
-    save_checkpoint(out, model, meta)
+    jobs = [(path, refine, data, class_map, s, scans, 0) for s in seeds]
+    click.echo(f"the refiner learns from the boxes of {len(seeds)} x {scans} scans of {data}")
+    _fit_stages(model, kept, jobs, out, meta, epochs, lr)
     click.echo(f"model: {out}")
 
 
-def _stream_proposals(job: tuple[Path, RefineConfig, str, ClassMap, int, int]) -> Proposals:
+def _fit_stages(
+    model: PHiM, kept: int, jobs: list[Job], out: Path, meta: dict, epochs: int, lr: float
+) -> None:
+    """Fit the refiner's stages after the first `kept`, each on the boxes of the scans of `jobs` as the
+    stages before it return them (a later stage's read from `out`, which is written after each stage)."""
+    from model.checkpoint import save_checkpoint
+    from model.train.refine import fit
+
+    if kept:
+        save_checkpoint(out, model, meta)
+    for k, stage in enumerate(model.refiner.chain()):
+        if k < kept:
+            continue
+        stage_jobs = [(out if k else job[0], *job[1:6], k) for job in jobs]
+        with ProcessPoolExecutor(len(jobs), mp_context=multiprocessing.get_context("spawn")) as pool:
+            boxes = Proposals.cat(list(pool.map(_stream_proposals, stage_jobs)))
+        on_objects = int((boxes.iou >= MATCH_IOU).sum())
+        click.echo(f"stage {k + 1}: {len(boxes)} boxes, {on_objects} on objects")
+        fit(stage, boxes, epochs, lr)
+        save_checkpoint(out, model, meta)
+
+
+def _kept_stages(have: RefineConfig | None, want: RefineConfig) -> int:
+    """--keep: how many fitted stages the checkpoint's refiner gives the one asked for."""
+    if have is None:
+        raise click.BadParameter("the checkpoint has no refiner to keep", param_hint="--keep")
+    if dataclasses.replace(have, stages=want.stages) != want:
+        raise click.BadParameter(
+            f"the checkpoint's refiner ({have}) differs from the one asked for ({want}) in more than its "
+            "stages",
+            param_hint="--keep",
+        )
+    if have.stages >= want.stages:
+        raise click.BadParameter(
+            f"the checkpoint's refiner has {have.stages} stages; --stages {want.stages} adds none",
+            param_hint="--keep",
+        )
+    return have.stages
+
+
+def _stream_proposals(job: Job) -> Proposals:
     """In a worker process of one thread: the detector's proposals on `scans` scans of `data` (the simulator:
-    stream `seed`)."""
+    stream `seed`), refined by the checkpoint's first `refined` refiner stages."""
     import torch
 
     from model.checkpoint import load_checkpoint
     from model.train.refine import proposals
 
-    path, cfg, data, classes, seed, scans = job
+    path, cfg, data, classes, seed, scans, refined = job
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return proposals(
-        load_checkpoint(path), cfg, scan_source(data, seed, shuffle=False, classes=classes), scans
-    )
+    source = scan_source(data, seed, shuffle=False, classes=classes)
+    return proposals(load_checkpoint(path), cfg, source, scans, refined)
