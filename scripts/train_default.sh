@@ -1,21 +1,21 @@
 #!/usr/bin/env bash
 # Reproduces the shipped default model from scratch: trains `tiny` on the simulator (3,900 steps on sim
-# stream 0), fine-tunes it seventeen times (2,600 steps on stream 1, 3,000 on stream 2, 6,000 on stream 4,
+# stream 0), fine-tunes it eighteen times (2,600 steps on stream 1, 3,000 on stream 2, 6,000 on stream 4,
 # 4,000 on stream 5, 2,500 on stream 8, 1,600 on stream 9, 2,500 on streams 12, 13, 14, 15, 16, 17, 18 and
-# 19, then 1,200 steps of 4 scans on streams 21 and 23, then 2,500 steps on stream 31; lower peak learning
-# rate, half that in the last twelve, direction loss weight 1), trains the box refiner on the last phase's
+# 19, then 1,200 steps of 4 scans on streams 21 and 23, then 2,500 steps on streams 31 and 36; lower peak
+# learning rate, half that in the last thirteen, direction loss weight 1), trains the box refiner on the last phase's
 # boxes (800 scans each of streams 28 and 29, 8 epochs, 64 points a box, with its context layer and flip
 # output: `phim train-refiner`) and its second stage on the first stage's boxes (`--keep`), evaluates the
 # result on the 200 held-out simulated scans (stream 7) and copies it to model/weights/tiny-sim.pt. `tiny`
-# reads x, y, z; the shipped weights' phases 1-8 read intensity too and phases 9-18 left it out
+# reads x, y, z; the shipped weights' phases 1-8 read intensity too and phases 9-19 left it out
 # (docs/model-card.md).
 # Usage: bash scripts/train_default.sh [RUN_DIR]   (default runs/default; an interrupted phase resumes;
-# the fine-tunes go to RUN_DIR/finetune, RUN_DIR/finetune2, ... RUN_DIR/finetune17)
+# the fine-tunes go to RUN_DIR/finetune, RUN_DIR/finetune2, ... RUN_DIR/finetune18)
 # Environment: STEPS (3900), FT_STEPS (2600), FT2_STEPS (3000), FT3_STEPS (6000), FT4_STEPS (4000),
 # FT5_STEPS (2500), FT6_STEPS (1600), FT7_STEPS (2500), FT8_STEPS (2500), FT9_STEPS (2500), FT10_STEPS (2500),
 # FT11_STEPS (2500), FT12_STEPS (2500), FT13_STEPS (2500), FT14_STEPS (2500), FT15_STEPS (1200),
-# FT16_STEPS (1200), FT17_STEPS (2500), BATCH (2 scans per step; phases 16-17 take 4: `quad` below), LR
-# (2e-3), FT_LR (1e-3), DEVICE (auto), WORKERS (1 per process), THREADS (0 = torch default).
+# FT16_STEPS (1200), FT17_STEPS (2500), FT18_STEPS (2500), BATCH (2 scans per step; phases 16-17 take 4:
+# `quad` below), LR (2e-3), FT_LR (1e-3), DEVICE (auto), WORKERS (1 per process), THREADS (0 = torch default).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -73,12 +73,14 @@ quad "$RUN/finetune15" 21 "${FT15_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/f
 quad "$RUN/finetune16" 23 "${FT16_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/finetune15/model.pt"
 # phase 18: the simulator's world of objects made of parts (checkpoints/newworld-ft1)
 phase "$RUN/finetune17" 31 "${FT17_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune16/model.pt"
+# phase 19: pedestrians in groups and beside street furniture, concrete barriers (checkpoints/company-ft1)
+phase "$RUN/finetune18" 36 "${FT18_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune17/model.pt"
 # the refiner: its first stage on phase 18's boxes, then (--keep) the second on the first stage's boxes
 LAST="$RUN/refined"
 mkdir -p "$RUN/refined1" "$LAST"
 refiner=(--seed 28 --seed 29 --scans 800 --epochs 8 --points 64 --threads "${THREADS:-0}")
 if [ ! -f "$RUN/refined1/model.pt" ]; then
-  "$PHIM" train-refiner --checkpoint "$RUN/finetune17/model.pt" --out "$RUN/refined1/model.pt" --stages 1 \
+  "$PHIM" train-refiner --checkpoint "$RUN/finetune18/model.pt" --out "$RUN/refined1/model.pt" --stages 1 \
     "${refiner[@]}"
 fi
 if [ ! -f "$LAST/model.pt" ]; then

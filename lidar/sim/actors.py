@@ -26,6 +26,12 @@ TURNING = 0.1  # chance that a moving vehicle is turning or changing lanes: head
 TURN_RAD = (0.15, 0.7)  # by this much, either way
 TRAILERS = (0.3, 2)  # chance that a scene has small trailers parked at the curb, and at most how many
 TRAILER_SIZE = ((2.6, 1.3, 0.75), (4.2, 2.0, 1.3))  # label-free (l, w, h) range, drawbar included
+# chance that a pedestrian (and the group) stands beside street furniture (a pole, a sign, a tree, a bin ..),
+# its centre 0.45-0.9 m beyond the piece's footprint: a person's points then come with something else's in
+# the same metre or two, as on real streets (docs/model-card.md, the pedestrians' diagnosis)
+BESIDE = 0.5
+GROUP_SQUEEZE = 0.8  # a pedestrian's free space (on the ground) is its box's footprint shrunk by this, so
+# that a group can stand GROUP_SPACING_M apart; the label box itself keeps clear of the scenery
 
 
 @dataclass(frozen=True)
@@ -36,9 +42,10 @@ class Candidates:
     # (people.PLAIN ..) or a cyclist's vehicle (people.BICYCLE ..); None: drawn when the solids are built
     space: np.ndarray | None = None  # (K, 7) boxes that must stay free for them (None: the label boxes),
     # larger where an object has something unlabelled with it (a stroller)
+    group: np.ndarray | None = None  # (K,) int64: candidates that are placed together (a group walking)
 
     def take(self, idx: np.ndarray) -> Candidates:
-        pick = [None if a is None else a[idx] for a in (self.kind, self.space)]
+        pick = [None if a is None else a[idx] for a in (self.kind, self.space, self.group)]
         return Candidates(self.boxes[idx], self.large[idx], *pick)
 
     @staticmethod
@@ -158,37 +165,62 @@ def _crossing(
     return xy[0], float(ground.height_at(xy[:, 0], xy[:, 1])[0]), heading, road.yaw
 
 
+def _beside(rng: np.random.Generator, beside: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """A spot next to one piece of furniture of `beside` (A, 5), along the road from it. Returns position
+    (2,), sidewalk z and the road's heading."""
+    x, y, z, r, yaw = beside[int(rng.integers(len(beside)))]
+    along = (r + 0.45 + rng.uniform(0.0, 0.45)) * (1.0 if rng.random() < 0.5 else -1.0)
+    across = rng.uniform(-0.3, 0.3)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([x + along * c - across * s, y + along * s + across * c]), float(z), float(yaw)
+
+
 def pedestrian_candidates(
-    rng: np.random.Generator, roads: list[Road], ground: Ground, reach: float, n: int
+    rng: np.random.Generator,
+    roads: list[Road],
+    ground: Ground,
+    reach: float,
+    n: int,
+    beside: np.ndarray | None = None,
 ) -> Candidates:
-    """`n` tries: walkers and standing groups of 1-3 on the sidewalks, about one in ten crossing a road."""
-    boxes, carries = [], []
-    for _ in range(n):
+    """`n` tries: walkers and standing groups of 1-4 on the sidewalks, about one in ten crossing a road and
+    a share (BESIDE) next to a piece of street furniture of `beside` (A, 5) (clutter.clutter)."""
+    boxes, carries, groups = [], [], []
+    for g in range(n):
         size, carry = people.pedestrian_sizes(rng, 4)  # (4, 3), (4,)
-        if rng.random() < 0.1:
+        draw = rng.random()
+        if draw < 0.1:
             xy, base, heading, line_up = _crossing(rng, roads, ground, reach)
         else:
-            spot = sidewalk_spot(rng, roads, ground, reach, (0.1, 0.9))
-            if spot is None:
-                continue
-            xy, base, line_up = spot.xy, spot.z, spot.yaw
-            heading = spot.yaw + (math.pi if rng.random() < 0.5 else 0.0)
+            if draw < 0.1 + BESIDE and beside is not None and len(beside):
+                xy, base, line_up = _beside(rng, beside)
+            else:
+                spot = sidewalk_spot(rng, roads, ground, reach, (0.1, 0.9))
+                if spot is None:
+                    continue
+                xy, base, line_up = spot.xy, spot.z, spot.yaw
+            heading = line_up + (math.pi if rng.random() < 0.5 else 0.0)
             heading = heading if rng.random() < 0.8 else rng.uniform(-math.pi, math.pi)  # standing
         members = int(rng.choice([1, 2, 3, 4], p=[0.55, 0.3, 0.1, 0.05]))
-        step = stats.GROUP_SPACING_M * np.array([math.cos(line_up), math.sin(line_up)])
+        side = line_up + (math.pi / 2 if rng.random() < 0.5 else -math.pi / 2)  # side by side, or in a line
+        along = side if rng.random() < 0.6 else line_up + (0.0 if rng.random() < 0.5 else math.pi)
+        step = stats.GROUP_SPACING_M * np.array([math.cos(along), math.sin(along)])
         for m in range(members):
             c = xy + step * m
             yaw = heading + rng.normal(0, 0.15)
             boxes.append([c[0], c[1], base + size[m, 2] / 2, *size[m], yaw])
             carries.append(carry[m])
+            groups.append(g)
     boxes_arr = np.asarray(boxes, np.float64).reshape(-1, 7)
     carry_arr = np.asarray(carries, np.int64)
     space = boxes_arr.copy()  # a stroller goes ahead of its pedestrian's box
+    space[:, 3:5] *= GROUP_SQUEEZE
     pushing = carry_arr == people.STROLLER
     grow = 1.0
     space[pushing, :2] += grow / 2 * np.column_stack([np.cos(space[pushing, 6]), np.sin(space[pushing, 6])])
     space[pushing, 3] += grow
-    return Candidates(boxes_arr, np.zeros(len(boxes_arr), bool), carry_arr, space)
+    group = np.asarray(groups, np.int64)
+    return Candidates(boxes_arr, np.zeros(len(boxes_arr), bool), carry_arr, space, group)
 
 
 def cyclist_candidates(
@@ -238,9 +270,13 @@ def select(
     obstacles: Obstacles | None = None,
 ) -> Candidates:
     """Keep up to `inside` candidates within `radius` of the sensor and `outside` between it and `reach`,
-    in random order, skipping those that overlap anything taken or any of the `obstacles` (scenery); the kept
-    ones take their place."""
-    order = rng.permutation(len(cands.boxes))
+    in random order (a group's members one after another), skipping those that overlap anything taken or any
+    of the `obstacles` (scenery); the kept ones take their place."""
+    if cands.group is None:
+        order = rng.permutation(len(cands.boxes))
+    else:  # groups in random order, each group's members together
+        rank = rng.permutation(int(cands.group.max()) + 1 if len(cands.group) else 0)
+        order = np.argsort(rank[cands.group], kind="stable")
     dist = np.hypot(cands.boxes[:, 0], cands.boxes[:, 1])
     space = cands.boxes if cands.space is None else cands.space
     keep, room = [], {True: inside, False: outside}
@@ -249,7 +285,8 @@ def select(
         if room[near] == 0 or dist[i] > reach:
             continue
         xy, r = discs(space[i])
-        if occ.free(xy, r) and (obstacles is None or obstacles.clear(space[i])):
+        clear = obstacles is None or (obstacles.clear(cands.boxes[i]) and obstacles.clear(space[i]))
+        if occ.free(xy, r) and clear:
             occ.take(xy, r)
             keep.append(i)
             room[near] -= 1

@@ -137,7 +137,7 @@ def _column(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> fl
 
 def _wall(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
     """A low wall or planter along the road, car-bonnet high."""
-    length = rng.uniform(1.5, 4.0)
+    length = rng.uniform(1.5, 8.0)
     top = spot.z + rng.uniform(0.4, 1.0)
     solids.boxes(spot.xy, spot.z - 0.05, top, length, rng.uniform(0.2, 0.4), spot.yaw, rng.uniform(0.2, 0.5))
     return length / 2
@@ -151,6 +151,18 @@ def _barrier(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> f
         leg = spot.xy + end * (length / 2 - 0.1) * np.array([math.cos(spot.yaw), math.sin(spot.yaw)])
         solids.boxes(leg, spot.z, spot.z + 0.7, 0.1, 0.5, spot.yaw, 0.3)
     return length / 2
+
+
+def _jersey(solids: TaggedSolidList, rng: np.random.Generator, spot: Spot) -> float:
+    """A run of 2-4 concrete road barriers end to end at the curb (a work zone): each 3-3.8 m long, a wide
+    foot and a narrow top, 0.8-1.05 m high; as long and as high as a car's side, and straight."""
+    n, each = int(rng.integers(2, 5)), rng.uniform(3.0, 3.8)
+    along = (np.arange(n) - (n - 1) / 2) * (each + rng.uniform(0.0, 0.1))  # (n,) segment centres
+    xy = spot.xy + along[:, None] * np.array([math.cos(spot.yaw), math.sin(spot.yaw)])
+    top, shade = spot.z + rng.uniform(0.8, 1.05), rng.uniform(0.2, 0.5)
+    solids.boxes(xy, spot.z - 0.05, spot.z + 0.3, each, 0.6, spot.yaw, shade)
+    solids.boxes(xy, spot.z + 0.3, top, each, 0.25, spot.yaw, shade)
+    return n * each / 2
 
 
 # (name, placement band across the sidewalk, relative frequency, builder returning its footprint radius)
@@ -169,6 +181,11 @@ KINDS: tuple[tuple[str, tuple[float, float], float, Callable[..., float]], ...] 
     ("column", (0.4, 1.0), 0.03, _column),
     ("wall", (0.8, 1.0), 0.04, _wall),
     ("barrier", (0.0, 0.1), 0.03, _barrier),
+    ("jersey", (0.0, 0.1), 0.02, _jersey),
+)
+# what a pedestrian may stand beside (BESIDE in actors.py): furniture of a person's size or taller
+BESIDE_KINDS = frozenset(
+    {"pole", "sign", "tree", "hydrant", "bollard", "bin", "board", "post", "trunk", "column"}
 )
 
 
@@ -180,15 +197,20 @@ def clutter(
     ground: Ground,
     count: int,
     reach: float,
-) -> None:
-    """`count` tries at placing random furniture on the sidewalks (overlapping tries are skipped)."""
+) -> np.ndarray:
+    """`count` tries at placing random furniture on the sidewalks (overlapping tries are skipped). Returns
+    (A, 5) x, y, sidewalk z, footprint radius and road heading of each piece a person may stand beside."""
     weights = np.array([k[2] for k in KINDS])
     picks = rng.choice(len(KINDS), size=count, p=weights / weights.sum())
+    beside = []
     for k in picks:
-        _, band, _, build = KINDS[k]
+        name, band, _, build = KINDS[k]
         spot = sidewalk_spot(rng, roads, ground, reach, band)
         if spot is None or not occ.free(spot.xy[None], np.array([0.5])):
             continue
         solids.tag = FURNITURE
         r = build(solids, rng, spot)
         occ.take(spot.xy, np.array([r]))
+        if name in BESIDE_KINDS:
+            beside.append([*spot.xy, spot.z, r, spot.yaw])
+    return np.asarray(beside, np.float64).reshape(-1, 5)

@@ -127,7 +127,7 @@ def make_scene(rng: np.random.Generator, cfg: SceneConfig, height: float, reach:
     occ.take(*actors.discs(ego))
     slots = frontage(solids, occ, rng, roads, ground, extent)
     tries = round(int(rng.integers(cfg.clutter[0], cfg.clutter[1] + 1)) * STYLES[layout].clutter)
-    clutter(solids, occ, rng, roads, ground, tries, extent)
+    beside = clutter(solids, occ, rng, roads, ground, tries, extent)
     obstacles = Obstacles.of(solids.build(), solids.tags())
     solids.tag = FURNITURE
     trailers = actors.parked_trailers(rng, roads, ground, occ, reach, obstacles)
@@ -138,7 +138,7 @@ def make_scene(rng: np.random.Generator, cfg: SceneConfig, height: float, reach:
         inside = int(rng.integers(counts[0], counts[1] + 1))
         outside = round(cfg.far_fraction * inside)
         for _ in range(PLACEMENT_ROUNDS):  # a new round of candidates fills what the last one could not
-            cands = _candidates(rng, label, roads, ground, reach, 3 * (inside + outside) + 5, slots)
+            cands = _candidates(rng, label, roads, ground, reach, 3 * (inside + outside) + 5, slots, beside)
             chosen = actors.select(rng, cands, occ, inside, outside, cfg.place_radius, reach, obstacles)
             _build(solids, rng, label, chosen)
             boxes.append(chosen.boxes)
@@ -159,12 +159,13 @@ def _candidates(
     reach: float,
     tries: int,
     slots: np.ndarray,
+    beside: np.ndarray,
 ) -> actors.Candidates:
     if label == VEHICLE:
         lanes = actors.vehicle_candidates(rng, roads, ground, reach)
         return actors.Candidates.join([lanes, actors.driveway_candidates(rng, slots)])
     if label == PEDESTRIAN:
-        return actors.pedestrian_candidates(rng, roads, ground, reach, tries)
+        return actors.pedestrian_candidates(rng, roads, ground, reach, tries, beside)
     return actors.cyclist_candidates(rng, roads, ground, reach, tries)
 
 
