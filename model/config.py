@@ -179,7 +179,9 @@ class RefineConfig:
     """The box refiner (model.layers.refine): a second stage that corrects each box from its raw points."""
 
     points: int = 64  # points read per box (128 gained 0.010 vehicle AP on sim for twice the PointNet time)
-    grow: tuple[float, float, float] = (1.0, 1.0, 0.5)  # metres added to l, w, h for the points read
+    # metres added to l, w, h for the points read, per class (the head's order): a pedestrian's neighbours
+    # stand within a metre of it (docs/simulator.md), so it reads 0.2 m around itself
+    grow: tuple[tuple[float, float, float], ...] = ((1.0, 1.0, 0.5), (0.4, 0.4, 0.5), (1.0, 1.0, 0.5))
     hidden: int = 128  # channels of the pooled point feature
     iou_weight: float = 0.5  # refined score = score^(1 - a) * predicted IoU^a
     # a second per-point layer that reads each point with the first layer's pooled feature (PointNet's
@@ -194,6 +196,8 @@ class RefineConfig:
     def __post_init__(self) -> None:
         if self.stages < 1:
             raise ValueError(f"stages: {self.stages}; expected at least 1")
+        if not all(len(g) == 3 and all(0 <= v < 1e3 for v in g) for g in self.grow):
+            raise ValueError(f"grow: {self.grow}; expected (l, w, h) metres >= 0 per class")
 
 
 @dataclass(frozen=True)
@@ -239,6 +243,8 @@ class PHiMConfig:
             raise ValueError("theta bins per sector must be a multiple of frustum_theta_bins")
         if self.buffer_sectors < 0:
             raise ValueError("buffer_sectors must be >= 0")
+        if self.refine is not None and len(self.refine.grow) != len(self.head.class_names):
+            raise ValueError("refine.grow needs one (l, w, h) per class")
 
     def resets_history(self, sectors_seen: int) -> bool:
         """Whether a stream that has seen `sectors_seen` sectors starts its next one from a zero global-Mamba
@@ -270,7 +276,7 @@ class PHiMConfig:
             buffer_sectors=d["buffer_sectors"],
             history=MambaHistory(d.get("history", MambaHistory.TURN)),
             sector_voxels=d.get("sector_voxels") or _default_sector_voxels(d["name"]),
-            refine=_refine_config(d.get("refine")),
+            refine=_refine_config(d.get("refine"), len(d["head"].get("class_names", CLASS_NAMES))),
             ego=EgoFootprint(**d["ego"]) if d.get("ego") else None if "ego" in d else EgoFootprint(),
         )
 
@@ -280,10 +286,15 @@ def _default_sector_voxels(name: str) -> int:
     return CONFIGS[name]().sector_voxels if name in CONFIGS else PHiMConfig.sector_voxels
 
 
-def _refine_config(d: dict | None) -> RefineConfig | None:
+def _refine_config(d: dict | None, classes: int) -> RefineConfig | None:
     """A checkpoint's refiner config; one saved before `context`, `flip` or `stages` existed had neither
-    part and one stage."""
-    return RefineConfig(**{"context": False, "flip": False, "stages": 1, **_tuples(d)}) if d else None
+    part and one stage, one saved before `grow` was per class grew every class's boxes alike."""
+    if not d:
+        return None
+    grow = d.get("grow", RefineConfig.grow)
+    per_class = [grow] * classes if grow and not isinstance(grow[0], list | tuple) else grow
+    old = {"context": False, "flip": False, "stages": 1}
+    return RefineConfig(**{**old, **_tuples(d), "grow": tuple(tuple(g) for g in per_class)})
 
 
 def _tuples(d: dict) -> dict:

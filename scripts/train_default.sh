@@ -75,7 +75,8 @@ quad "$RUN/finetune16" 23 "${FT16_STEPS:-1200}" 5e-4 "${tune[@]}" --init "$RUN/f
 phase "$RUN/finetune17" 31 "${FT17_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune16/model.pt"
 # phase 19: pedestrians in groups and beside street furniture, concrete barriers (checkpoints/company-ft1)
 phase "$RUN/finetune18" 36 "${FT18_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune17/model.pt"
-# the refiner: its first stage on phase 18's boxes, then (--keep) the second on the first stage's boxes
+# the refiner: its first stage on phase 18's boxes, then (--keep) the second on the first stage's boxes; each
+# reads the points in its boxes grown by the class's margin (RefineConfig.grow: 1 m, pedestrians 0.4 m)
 LAST="$RUN/refined"
 mkdir -p "$RUN/refined1" "$LAST"
 refiner=(--seed 28 --seed 29 --scans 800 --epochs 8 --points 64 --threads "${THREADS:-0}")

@@ -94,19 +94,18 @@ def _lookup_cases(rng: np.random.Generator) -> Iterator[tuple[str, np.ndarray, n
 
 
 def refine_group() -> int:
-    from model.config import RefineConfig
     from model.layers.refine import box_points, box_points_reference, box_points_torch
 
-    cfg, done = RefineConfig(points=8), 0
+    picked, done = 8, 0
     for name, pts, boxes in _lookup_cases(np.random.default_rng(51)):
         case(name)
         p, b = torch.from_numpy(pts), torch.from_numpy(boxes)
-        want_local, want = box_points_reference(p, b, cfg)
+        want_local, want = box_points_reference(p, b, picked)
         comparable = (
             np.isfinite(pts).all() and np.isfinite(boxes).all() and bool((abs(boxes[:, 6]) < 1e3).all())
         )
         for lookup in (box_points, box_points_torch):
-            local, counts = lookup(p, b, cfg)
+            local, counts = lookup(p, b, picked)
             assert local.shape == (len(boxes), 8, 3) and counts.shape == (len(boxes),), name
             assert bool(((counts >= 0) & (counts <= len(pts))).all()), (name, counts)
             if comparable:

@@ -35,6 +35,7 @@ from model.layers.refine import (
     box_points,
     box_points_reference,
     box_points_torch,
+    grown_boxes,
     refine,
     refine_many,
     refine_streams,
@@ -65,22 +66,23 @@ def test_the_grid_index_reads_the_points_every_point_against_every_box_reads(loo
     """The numba kernel (`box_points` on the CPU) and the tensor ops (on CUDA) against the plain twin; the
     large scene has boxes of hundreds of points (the kernel's radix sort, several passes)."""
     points, boxes = random_scene(seed, n)
-    local, counts = lookup(points, boxes, CFG)
-    ref_local, ref_counts = box_points_reference(points, boxes, CFG)
+    labels = torch.arange(boxes.shape[0]) % 3
+    boxes = grown_boxes(boxes, labels, CFG)
+    local, counts = lookup(points, boxes, CFG.points)
+    ref_local, ref_counts = box_points_reference(points, boxes, CFG.points)
     assert torch.equal(counts, ref_counts)
     torch.testing.assert_close(local, ref_local, rtol=0, atol=1e-5)
     assert int((counts == 0).sum()) > 0 and int((counts > CFG.points).sum()) > 0  # both cases were seen
     assert n < 10_000 or int(counts.max()) > 500
     assert bool((local[counts == 0] == 0).all())
-    half = (boxes[:, 3:6] + torch.tensor(CFG.grow)) / 2
-    assert bool((local.abs() <= half[:, None, :] + 1e-5).all())  # in the grown box, in its frame
+    assert bool((local.abs() <= boxes[:, None, 3:6] / 2 + 1e-5).all())  # in the box, in its frame
 
 
 @pytest.mark.parametrize("lookup", [box_points, box_points_torch])
 def test_no_boxes_or_no_points(lookup):
     points, boxes = random_scene(0)
     for p, b in ((points, boxes[:0]), (points[:0], boxes)):
-        local, counts = lookup(p, b, CFG)
+        local, counts = lookup(p, b, CFG.points)
         assert local.shape == (b.shape[0], CFG.points, 3) and counts.shape == (b.shape[0],)
         assert int(counts.sum()) == 0
 
@@ -97,7 +99,7 @@ from model.layers.refine import box_points, box_points_reference, box_points_tor
 torch.set_num_threads(1)
 g = np.random.default_rng(0)
 cluster = np.stack([g.uniform(20, 40, 300), g.uniform(-10, -2, 300), g.uniform(-1.5, 1, 300)], 1)
-two = torch.tensor([[30.0, -6, 0, 4, 2, 1.5, 0.3], [25.0, -3, -0.5, 0.8, 0.8, 1.7, -1.0]])
+two = torch.tensor([[30.0, -6, 0, 5, 3, 2, 0.3], [25.0, -3, -0.5, 1.8, 1.8, 2.2, -1.0]])  # grown
 cfg = RefineConfig(points=16)
 for far in (-1e30, 1e30, 1e19, -1e19, -3.4e38, 3.4028235e38):
     for axis in (0, 1):
@@ -109,9 +111,9 @@ for far in (-1e30, 1e30, 1e19, -1e19, -3.4e38, 3.4028235e38):
             out = {}
             for name, lookup in (("kernel", box_points), ("torch", box_points_torch)):
                 for _ in range(20):  # the corruption did not always crash the first call
-                    local, counts = lookup(points, boxes, cfg)
+                    local, counts = lookup(points, boxes, cfg.points)
                 out[name] = (counts.tolist(), local.tolist())
-            local, counts = box_points_reference(points, boxes, cfg)
+            local, counts = box_points_reference(points, boxes, cfg.points)
             out["plain"] = (counts.tolist(), local.tolist())
             print(json.dumps(out), flush=True)
 """
@@ -190,6 +192,25 @@ def test_a_refiner_saved_before_context_flip_and_stages_loads_as_it_was_trained(
     assert refiner.chain() == [refiner]
 
 
+def test_each_class_reads_the_points_around_its_boxes_grown_by_its_own_margin():
+    """`RefineConfig.grow` per class: a pedestrian (label 1) reads 0.2 m around itself, a vehicle 0.5 m; a
+    checkpoint saved when one margin held for every class loads with it for each."""
+    boxes = torch.tensor([[10.0, 0, 0, 4, 2, 1.5, 0.3], [5.0, 5, 0, 0.8, 0.7, 1.7, 1.0]])
+    grown = grown_boxes(boxes, torch.tensor([0, 1]), RefineConfig())
+    assert torch.equal(grown[:, [0, 1, 2, 6]], boxes[:, [0, 1, 2, 6]])
+    torch.testing.assert_close(grown[:, 3:6], torch.tensor([[5.0, 3, 2], [1.2, 1.1, 2.2]]))
+    # a pedestrian's neighbour 0.85 m away: inside a vehicle's margin, outside a pedestrian's
+    neighbour = torch.tensor([[5.0 + 0.85 * math.cos(1.0), 5 + 0.85 * math.sin(1.0), 0]])
+    for label, seen in ((1, 0), (0, 1)):
+        ped = grown_boxes(boxes[1:], torch.tensor([label]), RefineConfig())
+        assert int(box_points(neighbour, ped, 8)[1][0]) == seen
+    d = dataclasses.replace(tiny(), refine=RefineConfig()).to_dict()
+    d["refine"]["grow"] = [1.0, 1.0, 0.5]
+    assert PHiMConfig.from_dict(d).refine.grow == ((1.0, 1.0, 0.5),) * 3
+    with pytest.raises(ValueError, match="one \\(l, w, h\\) per class"):
+        dataclasses.replace(tiny(), refine=RefineConfig(grow=((1.0, 1.0, 0.5),)))
+
+
 def test_a_cascade_chains_its_stages_and_the_first_is_drawn_as_a_single_stage():
     """`RefineConfig.stages`: the stages in turn; stage 1's initial weights are those of a one-stage
     refiner (a later stage draws after it)."""
@@ -243,7 +264,8 @@ def _refine_plain(refiner, det: Detections, points: torch.Tensor) -> Detections:
     the twin of `refine_many`'s per-stream lookups and batched forward per stage."""
     boxes, scores, a = det.boxes, det.scores, refiner.cfg.iou_weight
     for stage in refiner.chain():
-        local, counts = box_points_reference(points, boxes, stage.cfg)
+        grown = grown_boxes(boxes, det.labels, stage.cfg)
+        local, counts = box_points_reference(points, grown, stage.cfg.points)
         out = stage(local, counts, boxes, scores, det.labels)
         scores = det.scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)  # the detector's and this IoU
         boxes = apply_residual(boxes, out)
@@ -345,7 +367,8 @@ def test_the_shipped_refiner_streams_as_the_whole_turn_and_reads_the_buffered_po
     with torch.inference_mode():
         whole, enc = shipped.forward_turn(sectors)
         plain = shipped.detect([enc.sectors])[0]
-        _, counts = box_points(torch.cat(sectors), plain.boxes, shipped.refiner.cfg)
+        grown = grown_boxes(plain.boxes, plain.labels, shipped.refiner.cfg)
+        _, counts = box_points(torch.cat(sectors), grown, shipped.refiner.cfg.points)
         alone = refine(shipped.refiner, plain, sectors[-1])  # without the buffered sectors' points
     assert int((counts > 0).sum()) >= 20  # boxes with points: the refiner's input matters
     assert_same_detections(result.detections, whole[0])

@@ -2,8 +2,9 @@
 
 The first stage sees the scene through 0.4 m x 1.4 degree polar voxels with 32 channels; its boxes find the
 objects but are too loose for 3D IoU 0.7 (docs/model-card.md). The refiner reads the points themselves:
-for each box, the points inside the box grown by `RefineConfig.grow`, in the box's own frame (centre at the
-origin, x along its yaw), `RefineConfig.points` of them picked evenly in firing order (repeated when fewer).
+for each box, the points inside the box grown by its class's `RefineConfig.grow`, in the box's own frame
+(centre at the origin, x along its yaw), `RefineConfig.points` of them picked evenly in firing order
+(repeated when fewer).
 A PointNet (a shared per-point MLP, max-pooled, with the box's class, log size, score, point count and
 range; with `RefineConfig.context` a second per-point layer reading each point with the pooled feature)
 predicts a residual (dx, dy, dz in the box frame, log size ratios, yaw change on the axis), the refined
@@ -13,9 +14,10 @@ direction comes from 0.8 m BEV cells; the points can tell a car's front from its
 one before it refined, with that one's score). The refined score is score^(1 - a) * iou^a
 (`RefineConfig.iou_weight`), as the head's IoU rectification: the detector's score and the last stage's IoU.
 
-`box_points` finds the points through a grid index of 1 m cells: a numba kernel on the CPU
-(`model.ops.box_points_numba`), tensor ops elsewhere (`box_points_torch`); `box_points_reference`, the plain
-twin, tests every point against every box. tests/test_refine.py holds them equal.
+`box_points` finds the points inside the grown boxes (`grown_boxes`) through a grid index of 1 m cells: a
+numba kernel on the CPU (`model.ops.box_points_numba`), tensor ops elsewhere (`box_points_torch`);
+`box_points_reference`, the plain twin, tests every point against every box. tests/test_refine.py holds
+them equal.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def to_box_frame(points: Tensor, boxes: Tensor) -> Tensor:
 
 
 def _pick(box: Tensor, local: Tensor, num_boxes: int, p: int) -> tuple[Tensor, Tensor]:
-    """The points inside the grown boxes as rows (box, box-frame coords), sorted by box then firing order ->
+    """The points inside the boxes as rows (box, box-frame coords), sorted by box then firing order ->
     (B, P, 3) box-frame points picked evenly (zeros for a box with none) and (B,) counts."""
     counts = torch.bincount(box, minlength=num_boxes)  # (B,)
     first = torch.cumsum(counts, 0) - counts  # (B,)
@@ -57,40 +59,45 @@ def _pick(box: Tensor, local: Tensor, num_boxes: int, p: int) -> tuple[Tensor, T
     return torch.where(counts[:, None, None] > 0, picked, torch.zeros_like(picked)), counts
 
 
-def box_points_reference(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[Tensor, Tensor]:
-    """points (N, >=3), boxes (B, 7) -> (B, P, 3) points in each grown box, box frame, and (B,) counts:
-    every point against every box."""
+def grown_boxes(boxes: Tensor, labels: Tensor, cfg: RefineConfig) -> Tensor:
+    """boxes (B, 7) of classes labels (B,) -> (B, 7) the same boxes, l, w, h grown by their class's
+    `cfg.grow`: the outlines the refiner reads the points of."""
+    grow = torch.tensor(cfg.grow, dtype=boxes.dtype, device=boxes.device)[labels.long()]  # (B, 3)
+    return torch.cat((boxes[:, :3], boxes[:, 3:6] + grow, boxes[:, 6:]), 1)
+
+
+def box_points_reference(points: Tensor, boxes: Tensor, p: int) -> tuple[Tensor, Tensor]:
+    """points (N, >=3), boxes (B, 7) -> (B, p, 3) points in each box, box frame, and (B,) counts: every
+    point against every box."""
     b, n = boxes.shape[0], points.shape[0]
     box = torch.arange(b, device=points.device).repeat_interleave(n)
     point = torch.arange(n, device=points.device).repeat(b)
-    return _inside(points, boxes, box, point, cfg)
+    return _inside(points, boxes, box, point, p)
 
 
-def box_points(
-    points: Tensor, boxes: Tensor, cfg: RefineConfig, fast: bool | None = None
-) -> tuple[Tensor, Tensor]:
+def box_points(points: Tensor, boxes: Tensor, p: int, fast: bool | None = None) -> tuple[Tensor, Tensor]:
     """`box_points_reference`'s result: by a numba kernel (`model.ops.box_points_numba`) or by tensor ops
     (`box_points_torch`), as `fast` says (`numba_kernel`: None, the kernel on CPU tensors)."""
     if numba_kernel("box_points", points.device, fast):
-        return box_points_cpu(points, boxes, cfg.grow, cfg.points, _CELL, _EPS)
-    return box_points_torch(points, boxes, cfg)
+        return box_points_cpu(points, boxes, p, _CELL, _EPS)
+    return box_points_torch(points, boxes, p)
 
 
-def box_points_torch(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[Tensor, Tensor]:
+def box_points_torch(points: Tensor, boxes: Tensor, p: int) -> tuple[Tensor, Tensor]:
     """`box_points_reference`'s result through the kernel's grid index (`box_points_numba`: 1 m cells
     over the boxes' rectangles, at most `MAX_SIDE` a side; one sort of the points by cell):
-    each box tests the points of the cells under its grown outline's bounding rectangle, one contiguous run
+    each box tests the points of the cells under its outline's bounding rectangle, one contiguous run
     of the sorted points per column of cells. Safe for any values, as the kernel."""
     b, dev = boxes.shape[0], points.device
     none = torch.zeros(0, dtype=torch.int64, device=dev)
     if b == 0 or points.shape[0] == 0:
-        return _inside(points, boxes, none, none, cfg)
-    rect = _rectangles(boxes, cfg.grow)  # (B, 4) float64
+        return _inside(points, boxes, none, none, p)
+    rect = _rectangles(boxes)  # (B, 4) float64
     x, y = points[:, 0].double(), points[:, 1].double()  # (N,) each
     span = torch.cat((rect[:, :2].amin(0).clamp(min=-REACH), rect[:, 2:].amax(0).clamp(max=REACH)))
     x0, y0, x1, y1 = span.tolist()  # the rectangles' span, finite (one wait on the device)
     if not (x0 <= x1 and y0 <= y1):  # no rectangle holds a finite point
-        return _inside(points, boxes, none, none, cfg)
+        return _inside(points, boxes, none, none, p)
     cell, w, h = grid_cells(x0, y0, x1, y1, _CELL)
     in_grid = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)  # a float test before any integer
     key = torch.where(in_grid, _index(x, x0, cell, w) * h + _index(y, y0, cell, h), w * h)  # (N,)
@@ -105,14 +112,14 @@ def box_points_torch(points: Tensor, boxes: Tensor, cfg: RefineConfig) -> tuple[
     first = torch.cumsum(count, 0) - count
     run = torch.arange(int(count.sum()), device=dev) - first.repeat_interleave(count)
     point = order[start.repeat_interleave(count) + run]  # (T,)
-    return _inside(points, boxes, box.repeat_interleave(count), point, cfg)
+    return _inside(points, boxes, box.repeat_interleave(count), point, p)
 
 
-def _rectangles(boxes: Tensor, grow: tuple[float, float, float]) -> Tensor:
-    """boxes (B, 7) -> (B, 4) float64 lo_x, lo_y, hi_x, hi_y: each grown box's bounding rectangle, as the
+def _rectangles(boxes: Tensor) -> Tensor:
+    """boxes (B, 7) -> (B, 4) float64 lo_x, lo_y, hi_x, hi_y: each box's bounding rectangle, as the
     kernel's (`box_points_numba._rectangles`: widened by _EPS and SLACK, a NaN bound unbounded)."""
     bx = boxes.double()
-    half_l, half_w = (bx[:, 3] + grow[0]) / 2, (bx[:, 4] + grow[1]) / 2
+    half_l, half_w = bx[:, 3] / 2, bx[:, 4] / 2
     c, s = torch.cos(bx[:, 6]).abs(), torch.sin(bx[:, 6]).abs()
     extent = torch.stack((c * half_l + s * half_w, s * half_l + c * half_w), 1) * (1 + SLACK) + _EPS  # (B, 2)
     lo, hi = bx[:, :2] - extent, bx[:, :2] + extent
@@ -125,17 +132,14 @@ def _index(v: Tensor, origin: float, cell: float, n: int) -> Tensor:
     return ((v - origin) / cell).nan_to_num_(nan=0.0).clamp_(0, n - 1).floor_().long()
 
 
-def _inside(
-    points: Tensor, boxes: Tensor, box: Tensor, point: Tensor, cfg: RefineConfig
-) -> tuple[Tensor, Tensor]:
-    """Candidate (box, point index) rows (T,) -> `_pick` of those inside the grown box, by box then firing
+def _inside(points: Tensor, boxes: Tensor, box: Tensor, point: Tensor, p: int) -> tuple[Tensor, Tensor]:
+    """Candidate (box, point index) rows (T,) -> `_pick` of those inside the box, by box then firing
     order."""
     local = to_box_frame(points[point, :3], boxes[box])  # (T, 3)
-    half = (boxes[box, 3:6] + boxes.new_tensor(cfg.grow)) / 2
-    keep = (local.abs() <= half).all(1)
+    keep = (local.abs() <= boxes[box, 3:6] / 2).all(1)
     box, point, local = box[keep], point[keep], local[keep]
     order = torch.argsort(box * points.shape[0] + point)
-    return _pick(box[order], local[order], boxes.shape[0], cfg.points)
+    return _pick(box[order], local[order], boxes.shape[0], p)
 
 
 class BoxRefiner(nn.Module):
@@ -249,9 +253,9 @@ def refine_many(
     scores = detected
     for stage in refiner.chain()[:stages]:
         cfg = stage.cfg
-        per_stream = boxes.split(sizes)
+        per_stream = grown_boxes(boxes, labels, cfg).split(sizes)
         looked = box_points_many(
-            [points[i] for i in some], [per_stream[i].to(points[i].device) for i in some], cfg
+            [points[i] for i in some], [per_stream[i].to(points[i].device) for i in some], cfg.points
         )
         local = torch.cat([lc[0] for lc in looked]).to(dev)  # (T, P, 3)
         counts = torch.cat([lc[1] for lc in looked]).to(dev)  # (T,)
@@ -274,15 +278,13 @@ def refiner_forward(
     return torch.cat([refiner(*part) for part in parts])
 
 
-def box_points_many(
-    points: list[Tensor], boxes: list[Tensor], cfg: RefineConfig
-) -> list[tuple[Tensor, Tensor]]:
+def box_points_many(points: list[Tensor], boxes: list[Tensor], p: int) -> list[tuple[Tensor, Tensor]]:
     """`box_points` of each (points, boxes) pair; on the CPU on torch's threads at once (the numba kernel
     releases the GIL: 8 KITTI turns' lookups took 0.53-0.68x as long on 2 threads as one after another)."""
     threads = torch.get_num_threads()
     if len(points) > 1 and threads > 1 and all(p.device.type == "cpu" for p in points):
-        return list(_pool(threads).map(lambda p, b: box_points(p, b, cfg), points, boxes))
-    return [box_points(p, b, cfg) for p, b in zip(points, boxes, strict=True)]
+        return list(_pool(threads).map(lambda pts, b: box_points(pts, b, p), points, boxes))
+    return [box_points(pts, b, p) for pts, b in zip(points, boxes, strict=True)]
 
 
 @functools.cache

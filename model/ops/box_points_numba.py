@@ -3,8 +3,8 @@
 
 The torch version sorts every point of the turn by its 1 m cell (~120,000 points for a KITTI turn) and
 gathers candidate rows as tensor ops: 10-15 ms a step on the 2-core machine. Here the points are bucketed
-by a counting sort into the cells of a grid that just covers the boxes' grown outlines (points outside it
-can be in no box), and each box walks the cells under its bounding rectangle, tests their points in its own
+by a counting sort into the cells of a grid that just covers the boxes' outlines (points outside it can
+be in no box), and each box walks the cells under its bounding rectangle, tests their points in its own
 frame, sorts the ones inside into firing order and picks `p` of them evenly, as `refine._pick` does. The
 result is the reference's for the same inputs up to float32 rounding of a point lying on a box's face
 (tests/test_refine.py).
@@ -32,13 +32,12 @@ REACH = 1e39  # metres: past every finite float32, the grid's bounds where a rec
 
 
 @numba.njit(cache=True, nogil=True)
-def _rectangles(boxes, grow, eps):  # pragma: no cover - compiled
-    """boxes (B, 7) float32 -> (B, 4) float64 lo_x, lo_y, hi_x, hi_y: each grown box's bounding rectangle
+def _rectangles(boxes, eps):  # pragma: no cover - compiled
+    """boxes (B, 7) float32 -> (B, 4) float64 lo_x, lo_y, hi_x, hi_y: each box's bounding rectangle
     in metres, widened by eps and SLACK of its half sides; a NaN bound (a NaN or inf box) is unbounded."""
     out = np.empty((boxes.shape[0], 4), np.float64)
     for b in range(boxes.shape[0]):
-        hl = (np.float64(boxes[b, 3]) + grow[0]) / 2
-        hw = (np.float64(boxes[b, 4]) + grow[1]) / 2
+        hl, hw = np.float64(boxes[b, 3]) / 2, np.float64(boxes[b, 4]) / 2
         c, s = abs(math.cos(np.float64(boxes[b, 6]))), abs(math.sin(np.float64(boxes[b, 6])))
         ex, ey = c * hl + s * hw, s * hl + c * hw  # half sides of the rectangle
         ex, ey = ex * (1 + SLACK) + eps, ey * (1 + SLACK) + eps
@@ -70,9 +69,9 @@ def _index(v, origin, cell, n):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _box_points(points, boxes, grow, p, cell, eps, local, counts):  # pragma: no cover - compiled
+def _box_points(points, boxes, p, cell, eps, local, counts):  # pragma: no cover - compiled
     """points (N, >=3) float32, boxes (B, 7) float32 -> fills local (B, p, 3) and counts (B,) (zeros)."""
-    rect = _rectangles(boxes, grow, eps)
+    rect = _rectangles(boxes, eps)
     x0, y0 = max(rect[:, 0].min(), -REACH), max(rect[:, 1].min(), -REACH)  # the rectangles' span, finite
     x1, y1 = min(rect[:, 2].max(), REACH), min(rect[:, 3].max(), REACH)
     if not (x0 <= x1 and y0 <= y1):
@@ -97,7 +96,7 @@ def _box_points(points, boxes, grow, p, cell, eps, local, counts):  # pragma: no
     spare = np.empty(points.shape[0], np.int64)
     for b in range(boxes.shape[0]):
         c, s = np.float32(math.cos(boxes[b, 6])), np.float32(math.sin(boxes[b, 6]))
-        half = (boxes[b, 3:6] + grow) / np.float32(2.0)
+        half = boxes[b, 3:6] / np.float32(2.0)
         n = 0
         lo_y, hi_y = _index(rect[b, 1], y0, cell, h), _index(rect[b, 3], y0, cell, h)
         for cx in range(_index(rect[b, 0], x0, cell, w), _index(rect[b, 2], x0, cell, w) + 1):
@@ -147,9 +146,7 @@ def _sorted(a, spare):  # pragma: no cover - compiled
     return src
 
 
-def box_points_cpu(
-    points: Tensor, boxes: Tensor, grow: tuple[float, float, float], p: int, cell: float, eps: float
-) -> tuple[Tensor, Tensor]:
+def box_points_cpu(points: Tensor, boxes: Tensor, p: int, cell: float, eps: float) -> tuple[Tensor, Tensor]:
     """CPU tensors points (N, >=3), boxes (B, 7) -> (B, p, 3) box-frame points and (B,) counts."""
     b = boxes.shape[0]
     local = np.zeros((b, p, 3), np.float32)
@@ -157,5 +154,5 @@ def box_points_cpu(
     if b and points.shape[0]:
         pts = np.ascontiguousarray(points[:, :3].detach().numpy(), np.float32)
         bx = np.ascontiguousarray(boxes.detach().numpy(), np.float32)
-        _box_points(pts, bx, np.asarray(grow, np.float32), p, cell, eps, local, counts)
+        _box_points(pts, bx, p, cell, eps, local, counts)
     return torch.from_numpy(local), torch.from_numpy(counts)

@@ -27,7 +27,14 @@ from model.eval.metrics import iou_matrix
 from model.eval.runner import scan_sectors
 from model.geometry.boxes import rotated_iou_3d_aligned
 from model.layers.phim_block import StreamLayout
-from model.layers.refine import BoxRefiner, apply_residual, box_points, refine_many, residual_target
+from model.layers.refine import (
+    BoxRefiner,
+    apply_residual,
+    box_points,
+    grown_boxes,
+    refine_many,
+    residual_target,
+)
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +79,7 @@ def scan_proposals(model: PHiM, cfg: RefineConfig, scan: LabeledScan, refined: i
     points = torch.cat(sectors)
     if refined and model.refiner is not None:
         det = refine_many(model.refiner, [det], [points], stages=refined)[0]
-    local, counts = box_points(points, det.boxes, cfg)
+    local, counts = box_points(points, grown_boxes(det.boxes, det.labels, cfg), cfg.points)
     gt = scan.gt
     iou = np.zeros((len(det), len(gt)), np.float32)
     if len(det) and len(gt):
