@@ -19,7 +19,7 @@ from model.detector import PHiM
 from model.engine import EngineSettings, SectorRejected, StreamEngine, engine_for
 from model.graph.engine import GraphStreamingDetector
 from model.layers.phim_block import StreamLayout
-from model.layers.refine import box_points_many, refine_many, refiner_forward
+from model.layers.refine import box_points_many, grown_boxes, refine_many, refiner_forward
 from model.ops.scan import resolve_scan
 from model.precision import autocast
 from model.sectors import split_turn
@@ -276,12 +276,12 @@ def bench_refiner(
         on_dev = [s.to(dev) for s in sectors]
         enc = model.encode(on_dev, StreamLayout.single_stream(len(sectors), dev), model.init_states(1))
         dets = [model.detect([enc.sectors])[0].to("cpu")] * streams
-        boxes = [d.boxes for d in dets]
-        looked = box_points_many(points, boxes, cfg)
+        boxes = [grown_boxes(d.boxes, d.labels, cfg) for d in dets]  # the first stage's outlines
+        looked = box_points_many(points, boxes, cfg.points)
         local, counts = (torch.cat([lc[i] for lc in looked]).to(dev) for i in (0, 1))
         inputs = [torch.cat([getattr(d, f) for d in dets]).to(dev) for f in ("boxes", "scores", "labels")]
         runs = {
-            "lookup": lambda: box_points_many(points, boxes, cfg),
+            "lookup": lambda: box_points_many(points, boxes, cfg.points),
             "pointnet": lambda: refiner_forward(model.refiner, local, counts, *inputs),
             "refine": lambda: refine_many(model.refiner, dets, points),
         }
