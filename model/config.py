@@ -197,7 +197,7 @@ class RefineConfig:
         if self.stages < 1:
             raise ValueError(f"stages: {self.stages}; expected at least 1")
         if not all(len(g) == 3 and all(0 <= v < 1e3 for v in g) for g in self.grow):
-            raise ValueError(f"grow: {self.grow}; expected (l, w, h) metres >= 0 per class")
+            raise ValueError(f"grow: {self.grow}; expected (l, w, h) metres in [0, 1000) per class")
 
 
 @dataclass(frozen=True)
