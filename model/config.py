@@ -192,6 +192,13 @@ class RefineConfig:
     # refiners applied in turn, each fitted on the boxes the ones before it refined (a cascade): a later
     # stage sees boxes closer to their objects, so it learns finer corrections and a sharper IoU
     stages: int = 2
+    # per class (the head's order): every heatmap cell above the head's score threshold is a box to refine,
+    # not only the 3x3 local maxima; a pedestrian beside another in the next 0.8 m cell has no peak of its
+    # own, and the refiner moves each cell's box onto the person it belongs to. Not vehicles: a car covers
+    # a dozen cells, whose boxes would crowd the others out of the head's post_nms_top_k
+    every_cell: tuple[bool, ...] = (False, True, True)
+    # per class, BEV rotated IoU: NMS over the last stage's boxes (the boxes of one object's cells meet)
+    nms_iou: tuple[float, ...] = (0.75, 0.1, 0.55)
 
     def __post_init__(self) -> None:
         if self.stages < 1:
@@ -243,8 +250,15 @@ class PHiMConfig:
             raise ValueError("theta bins per sector must be a multiple of frustum_theta_bins")
         if self.buffer_sectors < 0:
             raise ValueError("buffer_sectors must be >= 0")
-        if self.refine is not None and len(self.refine.grow) != len(self.head.class_names):
-            raise ValueError("refine.grow needs one (l, w, h) per class")
+        n, r = len(self.head.class_names), self.refine
+        if r is not None and not len(r.grow) == len(r.every_cell) == len(r.nms_iou) == n:
+            raise ValueError("refine.grow, refine.every_cell and refine.nms_iou need one value per class")
+
+    @property
+    def every_cell(self) -> tuple[bool, ...]:
+        """Per class, whether every heatmap cell is a candidate box (the refiner's `every_cell`; without a
+        refiner only the local maxima are)."""
+        return self.refine.every_cell if self.refine is not None else ()
 
     def resets_history(self, sectors_seen: int) -> bool:
         """Whether a stream that has seen `sectors_seen` sectors starts its next one from a zero global-Mamba
@@ -288,12 +302,13 @@ def _default_sector_voxels(name: str) -> int:
 
 def _refine_config(d: dict | None, classes: int) -> RefineConfig | None:
     """A checkpoint's refiner config; one saved before `context`, `flip` or `stages` existed had neither
-    part and one stage, one saved before `grow` was per class grew every class's boxes alike."""
+    part and one stage, one saved before `grow` was per class grew every class's boxes alike, and one saved
+    before `every_cell` read only the local maxima."""
     if not d:
         return None
     grow = d.get("grow", RefineConfig.grow)
     per_class = [grow] * classes if grow and not isinstance(grow[0], list | tuple) else grow
-    old = {"context": False, "flip": False, "stages": 1}
+    old = {"context": False, "flip": False, "stages": 1, "every_cell": (False,) * classes}
     return RefineConfig(**{**old, **_tuples(d), "grow": tuple(tuple(g) for g in per_class)})
 
 

@@ -109,7 +109,7 @@ class PHiM(nn.Module):
         return self.head(self.bev_backbone(bev))
 
     def detect(self, scenes: list[list[SectorFeatures]]) -> list[Detections]:
-        return decode(self.predict(scenes), self.cfg.head, self.cfg.bev)
+        return decode(self.predict(scenes), self.cfg.head, self.cfg.bev, self.cfg.every_cell)
 
     def forward_turn(self, sectors: list[Tensor]) -> tuple[list[Detections], Encoded]:
         """The whole turn in one pass: all sectors of one stream, global Mamba over their concatenation (and

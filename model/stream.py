@@ -106,7 +106,7 @@ class StreamingDetector(EngineBase):
             scenes = [[*s.buffer, new] for s, new in zip(states, enc.sectors, strict=True)]
             maps = self.model.predict(scenes)  # float32 maps
         keep = self.cfg.buffer_sectors
-        detections = decode(maps, self.cfg.head, self.cfg.bev)
+        detections = decode(maps, self.cfg.head, self.cfg.bev, self.cfg.every_cell)
         buffered = [s.points for s in states]  # the refiner reads the points where the caller holds them
         detections, kept = refine_streams(self.model.refiner, detections, buffered, host, keep)
         results, new_states = [], []

@@ -174,3 +174,21 @@ def test_local_maxima_equals_max_pool() -> None:
     peaks = local_maxima(hm)
     assert torch.equal(peaks, pooled)
     assert peaks[0, 0].all() and 0 < int(peaks[1].sum()) < peaks[1].numel()
+
+
+def test_every_cell_of_a_class_is_a_candidate_where_its_every_cell_says() -> None:
+    """Two pedestrians in neighbouring cells (and two cars the same): with the 3x3 local maxima the weaker
+    of each pair gets no box; a class whose `every_cell` is true gets both, the others still one."""
+    x0, y0, cell = BEV.x_min, BEV.y_min, BEV.cell
+    at = [(x0 + 40.5 * cell, y0 + 20.5 * cell), (x0 + 41.5 * cell, y0 + 20.5 * cell)]  # columns 40 and 41
+    people = [
+        Planted((x, y, 0.0, 0.3, 0.3, 1.7, 0.0), 1, p, 0.9) for (x, y), p in zip(at, (0.8, 0.6), strict=True)
+    ]
+    cars = [
+        Planted((x, y + 16 * cell, 0.0, 0.3, 0.3, 1.5, 0.0), 0, p, 0.9)
+        for (x, y), p in zip(at, (0.8, 0.6), strict=True)
+    ]
+    out = plant([people + cars], BEV)
+    for every_cell, per_class in (((), (1, 1)), ((False, True, False), (1, 2)), ((True, True, True), (2, 2))):
+        (det,) = decode(out, CFG, BEV, every_cell)
+        assert (int((det.labels == 0).sum()), int((det.labels == 1).sum())) == per_class, every_cell

@@ -27,7 +27,9 @@ from model.detector import PHiM
 from model.eval.metrics import iou_matrix
 from model.eval.runner import scan_sectors
 from model.geometry.boxes import Detections
+from model.geometry.nms import class_nms
 from model.layers import refine as refine_module
+from model.layers.head import decode
 from model.layers.phim_block import StreamLayout
 from model.layers.refine import (
     apply_output,
@@ -207,8 +209,34 @@ def test_each_class_reads_the_points_around_its_boxes_grown_by_its_own_margin():
     d = dataclasses.replace(tiny(), refine=RefineConfig()).to_dict()
     d["refine"]["grow"] = [1.0, 1.0, 0.5]
     assert PHiMConfig.from_dict(d).refine.grow == ((1.0, 1.0, 0.5),) * 3
-    with pytest.raises(ValueError, match="one \\(l, w, h\\) per class"):
+    with pytest.raises(ValueError, match="one value per class"):
         dataclasses.replace(tiny(), refine=RefineConfig(grow=((1.0, 1.0, 0.5),)))
+
+
+def test_a_refiner_saved_before_every_cell_reads_the_local_maxima_and_the_lists_need_one_per_class():
+    d = dataclasses.replace(tiny(), refine=RefineConfig()).to_dict()
+    del d["refine"]["every_cell"], d["refine"]["nms_iou"]
+    cfg = PHiMConfig.from_dict(d)
+    assert cfg.every_cell == (False,) * 3 and cfg.refine.nms_iou == RefineConfig.nms_iou
+    assert tiny().every_cell == () and any(dataclasses.replace(tiny(), refine=RefineConfig()).every_cell)
+    for bad in ({"every_cell": (True,)}, {"nms_iou": (0.5, 0.5)}):
+        with pytest.raises(ValueError, match="one value per class"):
+            dataclasses.replace(tiny(), refine=RefineConfig(**bad))
+
+
+def test_nms_runs_over_the_last_stages_boxes_only(shipped):
+    """Two boxes on one pedestrian (every cell of a person is a candidate: `every_cell`) refine to one
+    place; NMS with `nms_iou` after the last stage keeps one of them, sorted by score as before; after an
+    earlier stage (fitting the next) both stay."""
+    ped = torch.tensor([[10.0, 3.0, -0.9, 0.7, 0.6, 1.7, 0.4]])
+    g = torch.Generator().manual_seed(0)
+    points = ped[0, :3] + (torch.rand(200, 3, generator=g) - 0.5) * torch.tensor([0.5, 0.4, 1.6])
+    det = Detections(ped.repeat(2, 1), torch.tensor([0.6, 0.5]), torch.tensor([1, 1]))
+    last = refine_many(shipped.refiner, [det], [points])[0]
+    first = refine_many(shipped.refiner, [det], [points], stages=1)[0]
+    assert len(first) == 2 and bool(first.scores[0] > first.scores[1])  # the box scored higher stays so
+    unsorted = refine_many(shipped.refiner, [Detections(det.boxes, det.scores.flip(0), det.labels)], [points])
+    assert len(last) == 1 and torch.equal(last.boxes, unsorted[0].boxes)
 
 
 def test_a_cascade_chains_its_stages_and_the_first_is_drawn_as_a_single_stage():
@@ -230,13 +258,15 @@ def test_a_cascade_chains_its_stages_and_the_first_is_drawn_as_a_single_stage():
 
 
 def test_a_later_stage_learns_from_the_boxes_the_stages_before_it_refined(shipped):
-    """`scan_proposals(refined=k)`: the detector's boxes as the first k stages return them (re-sorted by
-    their refined score), with those boxes' points; k = 0: the detector's own."""
+    """`scan_proposals(refined=k)`: the detector's boxes (its heatmaps' local maxima, whatever
+    `every_cell` says) as the first k stages return them (re-sorted by their refined score, no NMS), with
+    those boxes' points; k = 0: the detector's own."""
     scan = scan_source("sim", 5, shuffle=False)(0)
     sectors = scan_sectors(scan, shipped.cfg.vfe.point_features, shipped.cfg.sectors_per_turn)
+    assert any(shipped.cfg.every_cell)
     with torch.inference_mode():
         _, enc = shipped.forward_turn(sectors)
-        det = shipped.detect([enc.sectors])[0]
+        det = decode(shipped.predict([enc.sectors]), shipped.cfg.head, shipped.cfg.bev)[0]
         once = refine_many(shipped.refiner, [det], [torch.cat(sectors)], stages=1)[0]
     raw = scan_proposals(shipped, shipped.refiner.cfg, scan)
     later = scan_proposals(shipped, shipped.refiner.cfg, scan, refined=1)
@@ -260,8 +290,8 @@ def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_
 
 
 def _refine_plain(refiner, det: Detections, points: torch.Tensor) -> Detections:
-    """The refiner's stages in turn on one prediction, its boxes looked up every point against every box:
-    the twin of `refine_many`'s per-stream lookups and batched forward per stage."""
+    """The refiner's stages in turn on one prediction, its boxes looked up every point against every box,
+    then the class NMS: the twin of `refine_many`'s per-stream lookups and batched forward per stage."""
     boxes, scores, a = det.boxes, det.scores, refiner.cfg.iou_weight
     for stage in refiner.chain():
         grown = grown_boxes(boxes, det.labels, stage.cfg)
@@ -271,8 +301,8 @@ def _refine_plain(refiner, det: Detections, points: torch.Tensor) -> Detections:
         boxes = apply_residual(boxes, out)
         if stage.cfg.flip:
             boxes[:, 6] = torch.where(out[:, 8] > 0, boxes[:, 6] + math.pi, boxes[:, 6])
-    order = torch.argsort(scores, descending=True, stable=True)
-    return Detections(boxes[order], scores[order], det.labels[order])
+    keep = class_nms(boxes, scores, det.labels, refiner.cfg.nms_iou, len(boxes), len(boxes))  # by score
+    return Detections(boxes[keep], scores[keep], det.labels[keep])
 
 
 @pytest.fixture(params=[1, 2])
@@ -294,7 +324,7 @@ def torch_threads(request):
 def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone(torch_threads: int, cfg):
     """`refine_many` (the engines' path: lookups per stream, on torch's threads at once where it has
     several, one forward over the batch's boxes, in chunks on the CPU; per stage of a cascade) against the
-    plain twin per stream; streams of 40, 0 and 300 boxes (two chunks)."""
+    plain twin per stream; streams of 40, 0 and 300 boxes (two chunks), a few of which the last NMS drops."""
     torch.manual_seed(0)
     refiner = PHiM(dataclasses.replace(tiny(), refine=cfg)).refiner.eval()
     g = torch.Generator().manual_seed(9)
@@ -306,9 +336,9 @@ def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone(torch_
         dets.append(Detections(boxes, scores, labels))
         points.append(p)
     got = refine_many(refiner, dets, points)
-    assert [len(d) for d in got] == [40, 0, 300]
-    for d, p, out in zip(dets, points, got, strict=True):
-        want = _refine_plain(refiner, d, p)
+    wants = [_refine_plain(refiner, d, p) for d, p in zip(dets, points, strict=True)]
+    assert [len(d) for d in got] == [len(d) for d in wants] and 320 < sum(map(len, got)) < 340
+    for out, want in zip(got, wants, strict=True):
         torch.testing.assert_close(out.boxes, want.boxes, rtol=1e-5, atol=1e-5)
         torch.testing.assert_close(out.scores, want.scores, rtol=1e-5, atol=1e-6)
         assert torch.equal(out.labels, want.labels)
@@ -372,7 +402,10 @@ def test_the_shipped_refiner_streams_as_the_whole_turn_and_reads_the_buffered_po
         alone = refine(shipped.refiner, plain, sectors[-1])  # without the buffered sectors' points
     assert int((counts > 0).sum()) >= 20  # boxes with points: the refiner's input matters
     assert_same_detections(result.detections, whole[0])
-    assert not torch.allclose(alone.boxes.sort(0).values, whole[0].boxes.sort(0).values, atol=1e-3)
+    same_count = len(alone) == len(whole[0])  # the last NMS may keep another number of boxes
+    assert not same_count or not torch.allclose(
+        alone.boxes.sort(0).values, whole[0].boxes.sort(0).values, atol=1e-3
+    )
 
 
 def test_the_shipped_refiner_brings_the_boxes_closer_to_the_truth(shipped):

@@ -77,7 +77,7 @@ def predict_scan(model: PHiM, scan: LabeledScan, precision: Precision = Precisio
     with autocast(precision, model.device):
         enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
         maps = model.predict([enc.sectors[: b + 1] for b in range(n)])  # float32 maps
-    dets = decode(maps, cfg.head, cfg.bev)
+    dets = decode(maps, cfg.head, cfg.bev, cfg.every_cell)
     if model.refiner is not None:  # prediction b covers sectors 0 .. b
         dets = [refine(model.refiner, d, torch.cat(sectors[: b + 1])) for b, d in enumerate(dets)]
     dets = [drop_ego_boxes(d, cfg.ego) for d in dets]

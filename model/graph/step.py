@@ -203,7 +203,7 @@ class GraphStep(nn.Module):
         valid = torch.cat([buf_valid, new_v[:, None]], 1)
         new_maps = self._dense(feats, cols, valid, maps, crop, cap)
         out = HeadOutput(*new_maps.permute(0, 3, 1, 2).split(self._map_split(), 1))
-        cand = peak_candidates(out, cfg.head, cfg.bev)
+        cand = peak_candidates(out, cfg.head, cfg.bev, cfg.every_cell)
         packed = torch.cat(
             [
                 cand.boxes,

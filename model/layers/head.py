@@ -182,11 +182,17 @@ class Candidates:
     heat: Tensor  # (B, T) the peak's heatmap score (the threshold's); 0 where top-k ran out of local maxima
 
 
-def peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> Candidates:
-    """Local maxima of the class heatmaps, the top cfg.pre_nms_top_k over all classes, decoded to boxes."""
+def peak_candidates(
+    out: HeadOutput, cfg: HeadConfig, bev: BEVConfig, every_cell: Sequence[bool] = ()
+) -> Candidates:
+    """Local maxima of the class heatmaps (every cell of a class whose `every_cell` is true), the top
+    cfg.pre_nms_top_k over all classes, decoded to boxes."""
     hm = torch.sigmoid(out.heatmap.float())  # (B, K, H, W)
     b, k, h, w = hm.shape
-    hm = torch.where(local_maxima(hm), hm, torch.zeros_like(hm))
+    peak = local_maxima(hm)  # (B, K, H, W)
+    if any(every_cell):
+        peak |= torch.tensor(every_cell, device=hm.device)[None, :, None, None]
+    hm = torch.where(peak, hm, torch.zeros_like(hm))
     top = min(cfg.pre_nms_top_k, k * h * w)
     heat, flat = torch.topk(hm.reshape(b, k * h * w), top, dim=1)  # (B, T)
     labels = torch.div(flat, h * w, rounding_mode="floor")  # (B, T)
@@ -209,16 +215,19 @@ def peak_candidates(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> Candida
 
 
 @torch.no_grad()
-def decode(out: HeadOutput, cfg: HeadConfig, bev: BEVConfig) -> list[Detections]:
+def decode(
+    out: HeadOutput, cfg: HeadConfig, bev: BEVConfig, every_cell: Sequence[bool] = ()
+) -> list[Detections]:
     """Head maps -> one Detections per batch item (float32 boxes, rectified scores, class labels).
 
-    Steps: sigmoid heatmap; keep 3x3 local maxima; top cfg.pre_nms_top_k over all classes and cells;
-    dims = exp(log_dim), yaw = `decode_yaw`; score = hm^(1 - a_c) * ((iou + 1) / 2)^a_c with
-    a_c = cfg.iou_rectifier[c]; drop peaks whose heatmap score (before the rectification, as CenterPoint
-    and OpenPCDet do) is below cfg.score_threshold; class-specific rotated NMS with cfg.nms_iou on the
-    rectified scores; keep the cfg.post_nms_top_k best. Detections are sorted by descending score.
+    Steps: sigmoid heatmap; keep 3x3 local maxima (every cell of a class whose `every_cell` is true); top
+    cfg.pre_nms_top_k over all classes and cells; dims = exp(log_dim), yaw = `decode_yaw`; score =
+    hm^(1 - a_c) * ((iou + 1) / 2)^a_c with a_c = cfg.iou_rectifier[c]; drop peaks whose heatmap score
+    (before the rectification, as CenterPoint and OpenPCDet do) is below cfg.score_threshold;
+    class-specific rotated NMS with cfg.nms_iou on the rectified scores; keep the cfg.post_nms_top_k best.
+    Detections are sorted by descending score.
     """
-    return select_detections(peak_candidates(out, cfg, bev), cfg)
+    return select_detections(peak_candidates(out, cfg, bev, every_cell), cfg)
 
 
 def select_detections(cand: Candidates, cfg: HeadConfig, fast: bool | None = None) -> list[Detections]:

@@ -32,6 +32,7 @@ from torch import Tensor, nn
 
 from model.config import RefineConfig
 from model.geometry.boxes import Detections
+from model.geometry.nms import class_nms
 from model.ops.box_points_numba import REACH, SLACK, box_points_cpu, grid_cells
 from model.ops.numba_support import numba_kernel
 
@@ -263,8 +264,10 @@ def refine_many(
         boxes = apply_output(boxes, out, cfg)
         a = cfg.iou_weight
         scores = detected.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
+    last = stages is None or stages >= len(refiner.chain())
+    nms_iou = refiner.cfg.nms_iou if last else None  # after the last stage only
     split = zip(boxes.split(sizes), scores.split(sizes), labels.split(sizes), dets, strict=True)
-    return [_sorted(b, s, lab).to(d.boxes.device) for b, s, lab, d in split]
+    return [_sorted(b, s, lab, nms_iou).to(d.boxes.device) for b, s, lab, d in split]
 
 
 def refiner_forward(
@@ -295,7 +298,12 @@ def _pool(workers: int) -> ThreadPoolExecutor:
 os.register_at_fork(after_in_child=_pool.cache_clear)  # a forked child has none of the pool's threads
 
 
-def _sorted(boxes: Tensor, scores: Tensor, labels: Tensor) -> Detections:
+def _sorted(boxes: Tensor, scores: Tensor, labels: Tensor, nms_iou: tuple[float, ...] | None) -> Detections:
+    """One stream's refined boxes (T, 7), scores and labels (T,) -> sorted by score, after a class-specific
+    NMS with `nms_iou` where given (`class_nms`: 0.3 ms for 200 boxes on the 2-core machine)."""
+    if nms_iou is not None:
+        keep = class_nms(boxes, scores, labels, nms_iou, len(boxes), len(boxes))  # sorted by score
+        return Detections(boxes[keep], scores[keep], labels[keep])
     order = torch.argsort(scores, descending=True, stable=True)
     return Detections(boxes[order], scores[order], labels[order])
 

@@ -26,6 +26,7 @@ from model.detector import PHiM
 from model.eval.metrics import iou_matrix
 from model.eval.runner import scan_sectors
 from model.geometry.boxes import rotated_iou_3d_aligned
+from model.layers.head import decode
 from model.layers.phim_block import StreamLayout
 from model.layers.refine import (
     BoxRefiner,
@@ -71,11 +72,12 @@ FIELDS = tuple(Proposals.__dataclass_fields__)
 @torch.inference_mode()
 def scan_proposals(model: PHiM, cfg: RefineConfig, scan: LabeledScan, refined: int = 0) -> Proposals:
     """The detector's full-turn boxes on one scan, after the model's first `refined` refiner stages, with
-    their points and their true boxes."""
+    their points and their true boxes. The boxes are the heatmaps' local maxima of every class: the refiner
+    is fitted on those, whatever cells it reads at work (`RefineConfig.every_cell`)."""
     n = model.cfg.sectors_per_turn
     sectors = scan_sectors(scan, model.cfg.vfe.point_features, n)
     enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
-    det = model.detect([enc.sectors])[0]
+    det = decode(model.predict([enc.sectors]), model.cfg.head, model.cfg.bev)[0]
     points = torch.cat(sectors)
     if refined and model.refiner is not None:
         det = refine_many(model.refiner, [det], [points], stages=refined)[0]
