@@ -190,8 +190,8 @@ def peak_candidates(
     hm = torch.sigmoid(out.heatmap.float())  # (B, K, H, W)
     b, k, h, w = hm.shape
     peak = local_maxima(hm)  # (B, K, H, W)
-    if any(every_cell):
-        peak |= torch.tensor(every_cell, device=hm.device)[None, :, None, None]
+    for c in (c for c, every in enumerate(every_cell) if every):  # device fills: no host copy in a graph
+        peak[:, c] = True
     hm = torch.where(peak, hm, torch.zeros_like(hm))
     top = min(cfg.pre_nms_top_k, k * h * w)
     heat, flat = torch.topk(hm.reshape(b, k * h * w), top, dim=1)  # (B, T)
