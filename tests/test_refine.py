@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -21,7 +22,13 @@ from test_streaming import assert_same_detections
 
 from contract import DetectionsReply, decode_response, encode_sector
 from lidar.sources import scan_source
-from model.checkpoint import init_weights, load_checkpoint, load_default_model, resolve_checkpoint
+from model.checkpoint import (
+    init_weights,
+    load_checkpoint,
+    load_default_model,
+    read_checkpoint,
+    resolve_checkpoint,
+)
 from model.config import PHiMConfig, RefineConfig, tiny
 from model.detector import PHiM
 from model.eval.metrics import iou_matrix
@@ -236,7 +243,8 @@ def test_nms_runs_over_the_last_stages_boxes_only(shipped):
     first = refine_many(shipped.refiner, [det], [points], stages=1)[0]
     assert len(first) == 2 and bool(first.scores[0] > first.scores[1])  # the box scored higher stays so
     unsorted = refine_many(shipped.refiner, [Detections(det.boxes, det.scores.flip(0), det.labels)], [points])
-    assert len(last) == 1 and torch.equal(last.boxes, unsorted[0].boxes)
+    assert len(last) == 1 and len(unsorted[0]) == 1  # the same box kept (to float rounding: rows reordered)
+    torch.testing.assert_close(last.boxes, unsorted[0].boxes, rtol=1e-5, atol=1e-5)
 
 
 def test_a_cascade_chains_its_stages_and_the_first_is_drawn_as_a_single_stage():
@@ -258,9 +266,9 @@ def test_a_cascade_chains_its_stages_and_the_first_is_drawn_as_a_single_stage():
 
 
 def test_a_later_stage_learns_from_the_boxes_the_stages_before_it_refined(shipped):
-    """`scan_proposals(refined=k)`: the detector's boxes (its heatmaps' local maxima, whatever
-    `every_cell` says) as the first k stages return them (re-sorted by their refined score, no NMS), with
-    those boxes' points; k = 0: the detector's own."""
+    """`scan_proposals(refined=k)`: the detector's boxes (its heatmaps' local maxima, and every cell of the
+    classes its `every_cell` argument names, whatever the model's config says) as the first k stages return
+    them (re-sorted by their refined score, no NMS), with those boxes' points; k = 0: the detector's own."""
     scan = scan_source("sim", 5, shuffle=False)(0)
     sectors = scan_sectors(scan, shipped.cfg.vfe.point_features, shipped.cfg.sectors_per_turn)
     assert any(shipped.cfg.every_cell)
@@ -268,10 +276,14 @@ def test_a_later_stage_learns_from_the_boxes_the_stages_before_it_refined(shippe
         _, enc = shipped.forward_turn(sectors)
         det = decode(shipped.predict([enc.sectors]), shipped.cfg.head, shipped.cfg.bev)[0]
         once = refine_many(shipped.refiner, [det], [torch.cat(sectors)], stages=1)[0]
+        cells = decode(shipped.predict([enc.sectors]), shipped.cfg.head, shipped.cfg.bev, (False, True, True))
     raw = scan_proposals(shipped, shipped.refiner.cfg, scan)
     later = scan_proposals(shipped, shipped.refiner.cfg, scan, refined=1)
     assert len(det) >= 10 and torch.equal(raw.boxes, det.boxes) and torch.equal(later.boxes, once.boxes)
     assert torch.equal(later.scores, once.scores) and not torch.equal(later.local, raw.local)
+    every = scan_proposals(shipped, shipped.refiner.cfg, scan, every_cell=(False, True, True))
+    assert len(every) > len(raw) and torch.equal(every.boxes, cells[0].boxes)
+    assert int((every.labels == 1).sum()) > int((raw.labels == 1).sum())  # a pedestrian's cells, not its peak
 
 
 def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_none():
@@ -347,13 +359,21 @@ def test_a_batchs_streams_refined_in_one_forward_equal_each_refined_alone(torch_
 
 
 def test_train_refiner_writes_the_frozen_detector_with_a_refiner_and_train_starts_without_it(tmp_path: Path):
-    """A one-stage refiner, then (--keep) a second stage fitted on its boxes, the first kept as it was."""
+    """A one-stage refiner, then (--keep) a second stage fitted on its boxes, the first kept as it was; the
+    second fitted on every cell of pedestrians and cyclists (more boxes than the first's local maxima)."""
     one, out = tmp_path / "one.pt", tmp_path / "refined.pt"
     cmd = [sys.executable, "-m", "phim", "train-refiner", "--seed", "5", "--points", "8", "--scans", "2"]
     cmd += ["--epochs", "1", "--threads", "1"]
-    subprocess.run([*cmd, "--out", str(one), "--stages", "1"], check=True, capture_output=True)
-    args = ["--checkpoint", str(one), "--keep", "--out", str(out)]
-    subprocess.run([*cmd, *args], check=True, capture_output=True)
+    first_run = [*cmd, "--out", str(one), "--stages", "1"]
+    run = subprocess.run(first_run, check=True, capture_output=True, text=True)
+    cells = ["--fit-every-cell", "pedestrian", "--fit-every-cell", "CYCLIST"]
+    args = ["--checkpoint", str(one), "--keep", "--out", str(out), *cells]
+    kept_run = subprocess.run([*cmd, *args], check=True, capture_output=True, text=True)
+    peaks = int(re.search(r"stage 1: (\d+) boxes", run.stdout).group(1))
+    every = int(re.search(r"stage 2: (\d+) boxes", kept_run.stdout).group(1))
+    assert 10 < peaks < every, (peaks, every)  # a stage's boxes are the detector's: as many, without cells
+    meta = read_checkpoint(out)["meta"]["refiner"]
+    assert meta["fit_every_cell"] == ["PEDESTRIAN", "CYCLIST"] and meta["stages_kept"] == 1
     first = load_checkpoint(one, expected=tiny())  # `tiny` with a refiner is still `tiny`
     refined = load_checkpoint(out, expected=tiny())
     assert first.cfg.refine == RefineConfig(points=8, stages=1) and len(first.refiner.chain()) == 1

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,14 +70,16 @@ FIELDS = tuple(Proposals.__dataclass_fields__)
 
 
 @torch.inference_mode()
-def scan_proposals(model: PHiM, cfg: RefineConfig, scan: LabeledScan, refined: int = 0) -> Proposals:
+def scan_proposals(
+    model: PHiM, cfg: RefineConfig, scan: LabeledScan, refined: int = 0, every_cell: Sequence[bool] = ()
+) -> Proposals:
     """The detector's full-turn boxes on one scan, after the model's first `refined` refiner stages, with
-    their points and their true boxes. The boxes are the heatmaps' local maxima of every class: the refiner
-    is fitted on those, whatever cells it reads at work (`RefineConfig.every_cell`)."""
+    their points and their true boxes. The boxes are the heatmaps' local maxima, and every cell of a class
+    whose `every_cell` is true (what `RefineConfig.every_cell` makes the refiner read at work)."""
     n = model.cfg.sectors_per_turn
     sectors = scan_sectors(scan, model.cfg.vfe.point_features, n)
     enc = model.encode(sectors, StreamLayout.single_stream(n, model.device), model.init_states(1))
-    det = decode(model.predict([enc.sectors]), model.cfg.head, model.cfg.bev)[0]
+    det = decode(model.predict([enc.sectors]), model.cfg.head, model.cfg.bev, every_cell)[0]
     points = torch.cat(sectors)
     if refined and model.refiner is not None:
         det = refine_many(model.refiner, [det], [points], stages=refined)[0]
@@ -94,14 +96,19 @@ def scan_proposals(model: PHiM, cfg: RefineConfig, scan: LabeledScan, refined: i
 
 
 def proposals(
-    model: PHiM, cfg: RefineConfig, source: Callable[[int], LabeledScan], scans: int, refined: int = 0
+    model: PHiM,
+    cfg: RefineConfig,
+    source: Callable[[int], LabeledScan],
+    scans: int,
+    refined: int = 0,
+    every_cell: Sequence[bool] = (),
 ) -> Proposals:
     """`scan_proposals` of scans source(0) .. source(scans - 1)."""
     model.eval()
     t0 = time.perf_counter()
     parts = []
     for i in range(scans):
-        parts.append(scan_proposals(model, cfg, source(i), refined))
+        parts.append(scan_proposals(model, cfg, source(i), refined, every_cell))
         if (i + 1) % 100 == 0:
             boxes = sum(map(len, parts))
             log.info("proposals: %d scans, %d boxes, %.0f s", i + 1, boxes, time.perf_counter() - t0)

@@ -13,6 +13,7 @@ import click
 
 from lidar.selection import ClassMap, Split
 from lidar.sources import scan_source
+from lidar.types import CLASS_NAMES
 from model.config import RefineConfig
 from model.tools.options import checkpoint_option, class_map_option, data_option, threads_option
 from model.train.refine import MATCH_IOU, Proposals
@@ -20,9 +21,9 @@ from model.train.refine import MATCH_IOU, Proposals
 if TYPE_CHECKING:
     from model.detector import PHiM
 
-# one proposal worker's task: checkpoint, refiner config, data, class map, sim stream, scans, and how many of
-# the checkpoint's refiner stages refine the detector's boxes first
-Job = tuple[Path, RefineConfig, str, ClassMap, int, int, int]
+# one proposal worker's task: checkpoint, refiner config, data, class map, sim stream, scans, per class
+# whether every heatmap cell is a box, and how many of the checkpoint's refiner stages refine the boxes first
+Job = tuple[Path, RefineConfig, str, ClassMap, int, int, tuple[bool, ...], int]
 
 
 @click.command()
@@ -77,6 +78,15 @@ Job = tuple[Path, RefineConfig, str, ClassMap, int, int, int]
     help="Keep the refiner stages the checkpoint has (the same points, context and flip) and fit only the "
     "stages after them.",
 )
+@click.option(
+    "--fit-every-cell",
+    "fit_every_cell",
+    type=click.Choice(CLASS_NAMES, case_sensitive=False),
+    multiple=True,
+    help="A class (repeat) whose every heatmap cell above the score threshold is a box to fit on, as the "
+    "refiner reads it at work (RefineConfig.every_cell). Default: none, the heatmaps' 3 x 3 local maxima of "
+    "every class.",
+)
 @threads_option
 def train_refiner_cmd(
     checkpoint: str,
@@ -92,6 +102,7 @@ def train_refiner_cmd(
     flip: bool,
     stages: int,
     keep: bool,
+    fit_every_cell: tuple[str, ...],
     threads: int,
 ) -> None:
     """Train the box refiner on the detector's own boxes (the detector is frozen): on simulated scans, or on
@@ -125,9 +136,11 @@ def train_refiner_cmd(
             "epochs": epochs,
             "lr": lr,
             "stages_kept": kept,
+            "fit_every_cell": list(fit_every_cell),
         }
     }
-    jobs = [(path, refine, data, class_map, s, scans, 0) for s in seeds]
+    cells = tuple(name in fit_every_cell for name in CLASS_NAMES)
+    jobs = [(path, refine, data, class_map, s, scans, cells, 0) for s in seeds]
     click.echo(f"the refiner learns from the boxes of {len(seeds)} x {scans} scans of {data}")
     _fit_stages(model, kept, jobs, out, meta, epochs, lr)
     click.echo(f"model: {out}")
@@ -146,7 +159,7 @@ def _fit_stages(
     for k, stage in enumerate(model.refiner.chain()):
         if k < kept:
             continue
-        stage_jobs = [(out if k else job[0], *job[1:6], k) for job in jobs]
+        stage_jobs = [(out if k else job[0], *job[1:7], k) for job in jobs]
         with ProcessPoolExecutor(len(jobs), mp_context=multiprocessing.get_context("spawn")) as pool:
             boxes = Proposals.cat(list(pool.map(_stream_proposals, stage_jobs)))
         on_objects = int((boxes.iou >= MATCH_IOU).sum())
@@ -181,8 +194,8 @@ def _stream_proposals(job: Job) -> Proposals:
     from model.checkpoint import load_checkpoint
     from model.train.refine import proposals
 
-    path, cfg, data, classes, seed, scans, refined = job
+    path, cfg, data, classes, seed, scans, every_cell, refined = job
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     source = scan_source(data, seed, shuffle=False, classes=classes)
-    return proposals(load_checkpoint(path), cfg, source, scans, refined)
+    return proposals(load_checkpoint(path), cfg, source, scans, refined, every_cell)
