@@ -76,10 +76,11 @@ phase "$RUN/finetune17" 31 "${FT17_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/
 # phase 19: pedestrians in groups and beside street furniture, concrete barriers (checkpoints/company-ft1)
 phase "$RUN/finetune18" 36 "${FT18_STEPS:-2500}" 5e-4 "${tune[@]}" --init "$RUN/finetune17/model.pt"
 # the refiner: its first stage on phase 18's boxes, then (--keep) the second on the first stage's boxes; each
-# reads the points in its boxes grown by the class's margin (RefineConfig.grow: 1 m, pedestrians 0.4 m)
+# reads the points in its boxes grown by the class's margin (RefineConfig.grow: 1 m, pedestrians 0.4 m) and
+# learns from the heatmaps' local maxima and every cell of a cyclist's heatmap (--fit-every-cell)
 LAST="$RUN/refined"
 mkdir -p "$RUN/refined1" "$LAST"
-refiner=(--seed 28 --seed 29 --scans 800 --epochs 8 --points 64 --threads "${THREADS:-0}")
+refiner=(--seed 28 --seed 29 --scans 800 --epochs 8 --points 64 --fit-every-cell cyclist --threads "${THREADS:-0}")
 if [ ! -f "$RUN/refined1/model.pt" ]; then
   "$PHIM" train-refiner --checkpoint "$RUN/finetune18/model.pt" --out "$RUN/refined1/model.pt" --stages 1 \
     "${refiner[@]}"
