@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # On a GPU machine whose python3 holds a CUDA build of torch and the project's other dependencies
-# (pip install ".[server]" without touching torch): the GPU checks and timings of docs/benchmarks.md, in
+# (pip install ".[server]" without touching torch; the stages tests and train need only the model's:
+# msgspec, click, numba, matplotlib, rich): the GPU checks and timings of docs/benchmarks.md, in
 # stages that each fit a 10-minute call, one process at a time (timings taken beside another GPU or compile
 # job are worthless, and a paper compile takes ~1 minute per bucket on 16 host cores).
 # Needs the KITTI scans 000000-000005 at ../shared/data/kitti_object/velodyne (or $PHIM_SAMPLES_DIR).

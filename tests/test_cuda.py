@@ -32,6 +32,11 @@ from model.train.loop import TrainConfig, train
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 CUDA = torch.device("cuda")
+# The fixed-shape step against the eager detector on the GPU: both sum with atomics (scatters whose order
+# varies) and the compiled step fuses its sums in other orders, so over eight steps of two streams a few
+# of the buffered features differ by up to 6.4e-4 and the paper config's scores by 1.7e-4 (H200, 2026-12-04:
+# 18 of 84,672 features, 2 of 500 scores); on the CPU they agree within 1e-4 (test_graph_step)
+CUDA_ATOL = 1e-3
 SCAN_LENGTHS = [[], [0, 0], [1], [0, 3, 0], [31, 32, 33, 64, 65], [300, 0, 1, 129], [4000, 17, 900]]
 FAST_IMPLS = [i for i in ScanImpl if i not in (ScanImpl.REFERENCE, ScanImpl.NUMBA)]  # numba: CPU only
 
@@ -174,14 +179,14 @@ def test_graph_step_on_cuda_equals_eager_on_cuda(models, compile):
     graph = GraphStreamingDetector(gpu, compile=compile)
     graph.calibrate([s.cuda() for s in turns[0]])
     batches = [[t[k].cuda() for t in turns] for k in range(gpu.cfg.sectors_per_turn)] * 2
-    run_both(graph, StreamingDetector(gpu), batches)
+    run_both(graph, StreamingDetector(gpu), batches, atol=CUDA_ATOL)
 
 
 @pytest.mark.parametrize("compile", [False, True])
 def test_bf16_graph_step_on_cuda_agrees_with_fp32(compile):
     """`--precision bf16` on the graph engine (op by op, and compiled): the shipped model's detections on a
     KITTI turn agree with its fp32 ones as on the CPU (test_precision), states and outputs stay float32."""
-    from test_precision import assert_agree
+    from precision_helpers import REFINED, assert_agree
 
     from model.checkpoint import load_default_model
     from model.config import Precision
@@ -197,7 +202,7 @@ def test_bf16_graph_step_on_cuda_agrees_with_fp32(compile):
     assert all(t.dtype == torch.float32 for t in (*st.conv, *st.ssm, st.feats))
     got = bf16[-1].detections
     assert (got.boxes.dtype, got.scores.dtype) == (torch.float32, torch.float32)
-    assert_agree(fp32[-1].detections.to(torch.device("cpu")), got.to(torch.device("cpu")))
+    assert_agree(fp32[-1].detections.to(torch.device("cpu")), got.to(torch.device("cpu")), **REFINED)
 
 
 @pytest.mark.parametrize("compile", [False, True])
@@ -219,7 +224,7 @@ def test_paper_graph_step_on_cuda_equals_eager(compile):
     graph = GraphStreamingDetector(model, compile=compile)
     graph.calibrate(turns[0])
     batches = [[turns[0][k], turns[1][k]] for k in range(cfg.sectors_per_turn)]
-    run_both(graph, StreamingDetector(model), batches + batches[:1])
+    run_both(graph, StreamingDetector(model), batches + batches[:1], atol=CUDA_ATOL)
     assert graph.crop_misses == 0 and any(cap.bev_crop for _, cap in graph.compiled_buckets) == compile
 
 

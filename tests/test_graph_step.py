@@ -25,18 +25,18 @@ def model() -> PHiM:
     return make_model()
 
 
-def assert_same_state(g: GraphStreamState, e: StreamState) -> None:
+def assert_same_state(g: GraphStreamState, e: StreamState, atol: float = 1e-4) -> None:
     """The graph state holds the eager one: Mamba states, and each buffered sector's rows in its slot."""
     for k, m in enumerate(e.mamba):
-        torch.testing.assert_close(g.conv[k], m.conv[0], rtol=1e-4, atol=1e-4, msg=f"block {k} conv")
-        torch.testing.assert_close(g.ssm[k], m.ssm[0], rtol=1e-4, atol=1e-4, msg=f"block {k} ssm")
+        torch.testing.assert_close(g.conv[k], m.conv[0], rtol=atol, atol=atol, msg=f"block {k} conv")
+        torch.testing.assert_close(g.ssm[k], m.ssm[0], rtol=atol, atol=atol, msg=f"block {k} ssm")
     keep = g.valid.shape[0]
     assert g.sectors_seen == e.sectors_seen
     for slot, sector in zip(range(keep - len(e.buffer), keep), e.buffer, strict=True):
         n = sector.num_voxels
         assert int(g.valid[slot].sum()) == n and bool(g.valid[slot, :n].all())
         torch.testing.assert_close(g.cols[slot, :n], sector.coords[:, :2], rtol=0, atol=0)
-        torch.testing.assert_close(g.feats[slot, :n], sector.features, rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(g.feats[slot, :n], sector.features, rtol=atol, atol=atol)
     assert not bool(g.valid[: keep - len(e.buffer)].any())
 
 
@@ -47,8 +47,13 @@ def synthetic_sectors(model: PHiM, seed: int, every: int = 3) -> list[torch.Tens
     return split_turn(torch.from_numpy(synthetic_turn(seed=seed))[::every], model.cfg.sectors_per_turn)
 
 
-def run_both(graph: GraphStreamingDetector, eager: StreamingDetector, batches: list[list[torch.Tensor]]):
-    """Step both detectors through `batches` (one sector per stream each) and compare every step."""
+def run_both(
+    graph: GraphStreamingDetector,
+    eager: StreamingDetector,
+    batches: list[list[torch.Tensor]],
+    atol: float = 1e-4,
+):
+    """Step both detectors through `batches` (one sector per stream each); compare every step to `atol`."""
     n = len(batches[0])
     g_states, e_states = [graph.new_state() for _ in range(n)], [eager.new_state() for _ in range(n)]
     boxes = 0
@@ -56,14 +61,14 @@ def run_both(graph: GraphStreamingDetector, eager: StreamingDetector, batches: l
         g_res, g_states = graph.step(sectors, g_states)
         e_res, e_states = eager.step(sectors, e_states)
         for g, e, gs, es in zip(g_res, e_res, g_states, e_states, strict=True):
-            assert_same_detections(g.detections, e.detections.to(torch.device("cpu")))
+            assert_same_detections(g.detections, e.detections.to(torch.device("cpu")), atol)
             assert (g.context_sectors, g.points_kept, g.points_out_of_range) == (
                 e.context_sectors,
                 e.points_kept,
                 e.points_out_of_range,
             )
             assert isinstance(gs, SlotState)
-            assert_same_state(graph.read_state(gs), es)
+            assert_same_state(graph.read_state(gs), es, atol)
             boxes += len(g.detections)
     assert boxes > 0  # the comparison saw boxes
 
