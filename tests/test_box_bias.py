@@ -58,6 +58,27 @@ def test_a_short_box_turned_round_is_short_and_flipped():
     assert s["dl_median_m"] == pytest.approx(-0.4, abs=1e-5) and s["dl_median_side_on_m"] is None
 
 
+def test_a_box_too_long_at_its_far_end_is_off_at_its_far_end_only():
+    """A car ahead seen end-on (its back towards the sensor) and one across, seen side-on: a box 0.4 m too
+    long whose near end is right is 0.4 m off at its far end; one shifted 0.2 m towards the sensor is
+    -0.2 m off at both; a box turned round is the same box."""
+    for label in (AHEAD, ACROSS):
+        axis = np.array([math.cos(label[6]), math.sin(label[6])])
+        away = 1.0 if np.dot(label[:2], axis) >= 0 else -1.0
+        longer = list(label)
+        longer[3] += 0.4
+        longer[0] += away * 0.2 * axis[0]
+        longer[1] += away * 0.2 * axis[1]
+        (p,) = pairs(result([label], [longer], [0.9]))
+        assert p["near"] == pytest.approx(0.0, abs=1e-5) and p["far"] == pytest.approx(0.4, abs=1e-5)
+        nearer = list(label)
+        nearer[0] -= away * 0.2 * axis[0]
+        nearer[1] -= away * 0.2 * axis[1]
+        nearer[6] += math.pi
+        (p,) = pairs(result([label], [nearer], [0.9]))
+        assert p["near"] == pytest.approx(-0.2, abs=1e-5) and p["far"] == pytest.approx(-0.2, abs=1e-5)
+
+
 def test_only_boxes_above_the_score_of_the_class_overlapping_enough_match_each_label_once():
     far = list(AHEAD)
     far[0] += 3.0  # BEV IoU 1.5 / 7.5 = 0.2 with the label

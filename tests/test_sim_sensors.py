@@ -21,6 +21,7 @@ from lidar.sim.compare import (
     cloud_stats,
     compare,
     format_tables,
+    legs_hidden_counts,
 )
 from lidar.sim.ego import sweep_origins
 from lidar.sim.ground import Ground
@@ -184,6 +185,23 @@ def test_above_ground_and_stats_on_a_known_cloud():
         and len(stats.height_share) == len(HEIGHT_EDGES) - 1
     )
     assert 0 < stats.clutter_est < 0.05 and stats.clutter_true is None
+
+
+def test_legs_hidden_counts_the_pedestrians_seen_only_above_their_legs():
+    """Three pedestrians (boxes 1.8 m tall, bottoms at z -1.8): one seen head to foot, one seen from 0.6 m
+    up (over a car), one with too few points to count; a cyclist seen from 0.6 m up is not a pedestrian."""
+    boxes = np.array([[10.0, y, -0.9, 0.6, 0.6, 1.8, 0.0] for y in (0.0, 3.0, 6.0, 9.0)], np.float32)
+    column = [
+        np.c_[np.full(n, 10.0), np.full(n, y), np.linspace(lo, -0.1, n), np.zeros(n)]
+        for y, lo, n in ((0.0, -1.75, 30), (3.0, -1.2, 30), (6.0, -1.75, 10), (9.0, -1.2, 30))
+    ]
+    points = np.concatenate(column).astype(np.float32)
+    labels = np.array([1, 1, 1, 2])  # PEDESTRIAN x 3, CYCLIST
+    cloud = Cloud(points, 1.8, boxes, None, None, labels=labels)
+    assert legs_hidden_counts(cloud) == (2, 1)
+    stats = cloud_stats("x", [cloud])
+    assert stats.pedestrians == 2 and stats.legs_hidden == 0.5
+    assert legs_hidden_counts(replace(cloud, labels=None)) == (0, 0)  # no classes: nothing counted
 
 
 def test_compare_without_samples_gives_simulated_rows(tmp_path):

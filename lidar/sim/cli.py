@@ -128,7 +128,8 @@ def compare_cmd(
     png_seed: int,
     png_frame: int,
 ) -> None:
-    """Simulated scans against the real samples: ranges, heights, intensity, clutter (Markdown tables)."""
+    """Simulated scans against the real samples: ranges, heights, intensity, clutter, pedestrians seen
+    only above their legs (Markdown tables)."""
     from lidar.samples import SAMPLES_DIR
     from lidar.sim.compare import (
         REAL,

@@ -11,7 +11,10 @@ Statistics, over all points of all scans of a row:
   estimate: a point outside every label box and more than GROUND_RISE above the lowest point of its
   GROUND_CELL x GROUND_CELL metre cell. The estimate misses clutter in cells where no ground shows (a wall
   filling its cell) and counts steep ground (a ramp, a curb) as clutter; it is also applied to simulated
-  scans (`clutter_est`) so that the two can be compared like for like.
+  scans (`clutter_est`) so that the two can be compared like for like;
+- pedestrians' legs hidden: of the well-seen pedestrians (at least SEEN_POINTS points in the label box,
+  within SEEN_RANGE metres), the share with no point in the lowest LEGS metres of the box: people seen
+  over a parked car or a low wall, only their upper body showing.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from lidar.readers import read_labeled
 from lidar.samples import SAMPLE_FRAMES, SAMPLES_DIR
 from lidar.sim.sensors import Sensor, sensor_spec
 from lidar.sim.simulate import SimConfig, Source, simulate_sources
-from lidar.types import points_in_boxes
+from lidar.types import CLASS_NAMES, points_in_boxes
 
 RANGE_EDGES = (0.0, 2.5, 10.0, 20.0, 30.0, 50.0, 80.0, math.inf)  # metres
 HEIGHT_EDGES = (-math.inf, 0.3, 1.0, 2.0, 3.0, 5.0, math.inf)  # metres above the ground
@@ -37,6 +40,8 @@ INTENSITY_EDGES = (0.0, 0.02, 0.05, 0.1, 0.2, 0.4, 0.99, 1.01)
 GROUND_CELL = 2.0  # metres
 GROUND_RISE = 0.3  # metres above the cell's lowest point
 EGO_RADIUS = 2.5  # metres (horizontal): nearer points are left out of the clutter share (the ego car)
+PEDESTRIAN = CLASS_NAMES.index("PEDESTRIAN")
+SEEN_POINTS, SEEN_RANGE, LEGS = 20, 50.0, 0.5  # a well-seen pedestrian; metres, metres
 
 
 class RealSet(enum.StrEnum):
@@ -75,6 +80,7 @@ class Cloud:
     fov: tuple[float, float] | None  # azimuths the labels cover (None: all around)
     clutter: np.ndarray | None  # (N,) bool, by construction (simulated scans)
     has_intensity: bool = True
+    labels: np.ndarray | None = None  # (M,) int64 the boxes' classes (index into CLASS_NAMES)
 
 
 @dataclass(frozen=True)
@@ -89,6 +95,8 @@ class Stats:
     intensity_p90: float | None
     clutter_est: float  # the estimate (both)
     clutter_true: float | None  # by construction (simulated scans only)
+    pedestrians: int  # well-seen pedestrians
+    legs_hidden: float | None  # the share of them with no point in their box's lowest LEGS metres
 
 
 def above_ground(points: np.ndarray) -> np.ndarray:
@@ -123,6 +131,18 @@ def clutter_counts(cloud: Cloud) -> tuple[int, int, int]:
     return int(counted.sum()), int(estimate.sum()), true
 
 
+def legs_hidden_counts(cloud: Cloud) -> tuple[int, int]:
+    """Well-seen pedestrians of a scan, and how many of them have no point in their box's lowest LEGS m."""
+    if cloud.labels is None:
+        return 0, 0
+    peds = cloud.boxes[cloud.labels == PEDESTRIAN]  # (P, 7)
+    inside = points_in_boxes(cloud.points[:, :3], peds)  # (N, P)
+    seen = (inside.sum(axis=0) >= SEEN_POINTS) & (np.hypot(peds[:, 0], peds[:, 1]) <= SEEN_RANGE)
+    low = cloud.points[:, 2, None] < (peds[:, 2] - peds[:, 5] / 2 + LEGS)[None]  # (N, P)
+    hidden = seen & ~(inside & low).any(axis=0)
+    return int(seen.sum()), int(hidden.sum())
+
+
 def _share(values: np.ndarray, edges: tuple[float, ...]) -> np.ndarray:
     counts = np.histogram(values, bins=np.asarray(edges))[0]
     return counts / max(int(counts.sum()), 1)
@@ -133,6 +153,7 @@ def cloud_stats(name: str, clouds: list[Cloud]) -> Stats:
     pts = np.concatenate([c.points for c in clouds])  # (N, 4)
     up = np.concatenate([c.points[:, 2] + c.height for c in clouds])
     counts = np.array([clutter_counts(c) for c in clouds]).sum(axis=0)  # (3,)
+    seen, hidden = np.array([legs_hidden_counts(c) for c in clouds]).sum(axis=0)
     lit = all(c.has_intensity for c in clouds)
     known = all(c.clutter is not None for c in clouds)
     return Stats(
@@ -146,6 +167,8 @@ def cloud_stats(name: str, clouds: list[Cloud]) -> Stats:
         intensity_p90=float(np.percentile(pts[:, 3], 90)) if lit else None,
         clutter_est=counts[1] / max(counts[0], 1),
         clutter_true=counts[2] / max(counts[0], 1) if known else None,
+        pedestrians=int(seen),
+        legs_hidden=hidden / seen if seen else None,
     )
 
 
@@ -157,7 +180,7 @@ def sim_clouds(cfg: SimConfig, seeds: range, fov: tuple[float, float] | None = N
         scan, source = simulate_sources(seed, cfg)
         inside = points_in_boxes(scan.points[:, :3], scan.gt.boxes).any(axis=1)
         clutter = (source == Source.SOLID) & ~inside
-        clouds.append(Cloud(scan.points, height, scan.gt.boxes, fov, clutter))
+        clouds.append(Cloud(scan.points, height, scan.gt.boxes, fov, clutter, labels=scan.gt.labels))
     return clouds
 
 
@@ -172,9 +195,8 @@ def real_clouds(which: RealSet, samples: Path = SAMPLES_DIR) -> list[Cloud]:
     for path in paths:
         scan = read_labeled(path, frame=frame)
         points = scan.points[:, :4]
-        clouds.append(
-            Cloud(points, src.height, scan.gt.boxes, scan.label_fov, None, which != RealSet.ARGOVERSE)
-        )
+        lit = which != RealSet.ARGOVERSE
+        clouds.append(Cloud(points, src.height, scan.gt.boxes, scan.label_fov, None, lit, scan.gt.labels))
     return clouds
 
 
@@ -204,11 +226,12 @@ def _edges(edges: tuple[float, ...]) -> list[str]:
 
 
 def format_tables(rows: list[Stats]) -> str:
-    """Three Markdown tables: points and ranges; heights; intensity and clutter."""
+    """Three Markdown tables: points and ranges; heights; intensity, clutter and pedestrians' legs."""
     head = ["source", "scans"]
     t1 = [[*head, "points/scan", *[f"r {e} m" for e in _edges(RANGE_EDGES)]]]
     t2 = [[*head, *[f"h {e} m" for e in _edges(HEIGHT_EDGES)]]]
     t3 = [[*head, "median", "p90", *[f"i {e}" for e in _edges(INTENSITY_EDGES)], "clutter", "clutter est."]]
+    t3[0] += ["pedestrians seen", "legs hidden"]
     for s in rows:
         first = [s.name, str(s.scans)]
         t1.append([*first, f"{s.points:,.0f}", *_cells(s.range_share)])
@@ -218,7 +241,8 @@ def format_tables(rows: list[Stats]) -> str:
         else:
             lit = [f"{s.intensity_median:.3f}", f"{s.intensity_p90:.3f}", *_cells(s.intensity_share)]
         true = "n/a" if s.clutter_true is None else f"{s.clutter_true:.3f}"
-        t3.append([*first, *lit, true, f"{s.clutter_est:.3f}"])
+        legs = "n/a" if s.legs_hidden is None else f"{s.legs_hidden:.3f}"
+        t3.append([*first, *lit, true, f"{s.clutter_est:.3f}", str(s.pedestrians), legs])
     return "\n\n".join(_markdown(t) for t in (t1, t2, t3))
 
 

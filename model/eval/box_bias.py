@@ -8,8 +8,10 @@ minus labelled (metres: negative is too short), the heading error folded to [0, 
 box points the wrong way round, `flipped`), and how the label was seen: the angle between its heading axis
 and the line of sight from the sensor to its centre, folded to [0, 90] degrees (0: seen end-on, its front
 or back towards the sensor; 90: side-on, where a box's two ends look alike unless its shape tells them
-apart). Unlike `diagnose` (the detector's regression at the true centre cells), this is what a user gets,
-refiner included, and what a team measures on its own labelled sweeps.
+apart). Along the label's axis, the error of the box's near end (towards the sensor: the end its points
+show) and of its far end (where the object hides its back), each positive where the box's end lies beyond
+the label's, away from the sensor. Unlike `diagnose` (the detector's regression at the true centre cells),
+this is what a user gets, refiner included, and what a team measures on its own labelled sweeps.
 """
 
 from __future__ import annotations
@@ -25,8 +27,8 @@ from model.eval.runner import ScanResult
 from model.eval.vehicle_check import iou_bev
 
 # per matched pair: the class, length / width / height error (m), heading error (deg, [0, 180]), view (deg,
-# [0, 90]), the label's points, its distance from the sensor (m)
-PAIR_COLUMNS = ("label", "dl", "dw", "dh", "heading_deg", "view_deg", "points", "range_m")
+# [0, 90]), the label's points, its distance from the sensor (m), near and far end error (m)
+PAIR_COLUMNS = ("label", "dl", "dw", "dh", "heading_deg", "view_deg", "points", "range_m", "near", "far")
 SIDE_ON_DEG = 45.0  # a label seen at a view angle above this is side-on, else end-on
 VIEWS = ("side_on", "end_on")
 
@@ -41,6 +43,17 @@ def _fold(angle: np.ndarray, period: float) -> np.ndarray:
     """Angles (radians) -> their distance from 0 modulo `period`, in [0, period / 2], as degrees."""
     wrapped = np.remainder(angle + period / 2, period) - period / 2
     return np.degrees(np.abs(wrapped))
+
+
+def _ends(p: np.ndarray, t: np.ndarray) -> tuple[float, float]:
+    """A box and its label (7,) -> the error of the box's near and far end along the label's axis (m, > 0:
+    beyond the label's end, away from the sensor)."""
+    axis = np.array([math.cos(t[6]), math.sin(t[6])])
+    away = 1.0 if t[:2] @ axis >= 0 else -1.0  # the label's far end lies along away * axis
+    shift = away * float((p[:2] - t[:2]) @ axis)  # the box's centre beyond the label's
+    turn = p[6] - t[6]  # the box's half extent along the label's axis, less the label's
+    grow = abs(p[3] / 2 * math.cos(turn)) + abs(p[4] / 2 * math.sin(turn)) - t[3] / 2
+    return shift - grow, shift + grow
 
 
 def match_scan(r: ScanResult, cfg: MatchConfig) -> np.ndarray:
@@ -72,6 +85,7 @@ def match_scan(r: ScanResult, cfg: MatchConfig) -> np.ndarray:
                     _fold(np.array(t[6] - sight), math.pi),
                     points[j],
                     math.hypot(t[0], t[1]),
+                    *_ends(p, t),
                 ]
             )
     return np.asarray(rows, np.float64).reshape(-1, len(PAIR_COLUMNS))
@@ -86,7 +100,7 @@ def _summary(pairs: np.ndarray, labels: int) -> dict[str, float | None]:
     col = {name: pairs[:, i] for i, name in enumerate(PAIR_COLUMNS)}
     flipped, side_on = col["heading_deg"] > 90.0, col["view_deg"] > SIDE_ON_DEG
     out: dict[str, float | None] = {"labels": float(labels), "matched": float(len(pairs))}
-    for part in ("dl", "dw", "dh"):
+    for part in ("dl", "dw", "dh", "near", "far"):
         out[f"{part}_median_m"] = float(np.median(col[part]))
         out[f"{part}_mean_m"] = float(col[part].mean())
     for view, sel in zip(VIEWS, (side_on, ~side_on), strict=True):  # is length seen, or guessed?
@@ -132,23 +146,25 @@ def format_box_bias(d: dict[str, dict[str, float | None]], cfg: MatchConfig | No
 
     head = (
         "| group | labels | matched | l / w / h error, median (m) | mean (m) | l error side-on / end-on "
-        "| heading err | flipped | side-on | flipped side-on / end-on |"
+        "| near / far end error, median (m) | heading err | flipped | side-on | flipped side-on / end-on |"
     )
-    rows = [head, "|" + "---|" * 10]
+    rows = [head, "|" + "---|" * 11]
     for name, s in d.items():
         med = " / ".join(f"{s[p + '_median_m']:+.2f}" for p in ("dl", "dw", "dh"))
         mean = " / ".join(f"{s[p + '_mean_m']:+.2f}" for p in ("dl", "dw", "dh"))
         views = " / ".join(
             "-" if s[f"dl_median_{v}_m"] is None else f"{s[f'dl_median_{v}_m']:+.2f}" for v in VIEWS
         )
+        ends = f"{s['near_median_m']:+.2f} / {s['far_median_m']:+.2f}"
         rows.append(
-            f"| {name} | {s['labels']:.0f} | {s['matched']:.0f} | {med} | {mean} | {views} "
+            f"| {name} | {s['labels']:.0f} | {s['matched']:.0f} | {med} | {mean} | {views} | {ends} "
             f"| {s['heading_median_deg']:.1f} deg | {pct(s['flipped'])} | {pct(s['side_on'])} "
             f"| {pct(s['flipped_side_on'])} / {pct(s['flipped_end_on'])} |"
         )
     note = (
         f"(full-turn boxes scored >= {cfg.score:g} matched at rotated BEV IoU >= {cfg.iou:g}; errors are "
-        f"predicted - labelled; flipped: heading more than 90 deg off; side-on: the label's axis more than "
-        f"{SIDE_ON_DEG:g} deg from the line of sight)"
+        f"predicted - labelled; near / far end: the box's end towards / away from the sensor along the "
+        f"label's axis, + beyond the label's; flipped: heading more than 90 deg off; side-on: the label's "
+        f"axis more than {SIDE_ON_DEG:g} deg from the line of sight)"
     )
     return "\n".join(rows) + "\n" + note
