@@ -138,7 +138,9 @@ def make_scene(rng: np.random.Generator, cfg: SceneConfig, height: float, reach:
         inside = int(rng.integers(counts[0], counts[1] + 1))
         outside = round(cfg.far_fraction * inside)
         for _ in range(PLACEMENT_ROUNDS):  # a new round of candidates fills what the last one could not
-            cands = _candidates(rng, label, roads, ground, reach, 3 * (inside + outside) + 5, slots, beside)
+            tries = 3 * (inside + outside) + 5
+            cars = np.concatenate(boxes)[np.concatenate(labels) == VEHICLE] if boxes else np.zeros((0, 7))
+            cands = _candidates(rng, label, roads, ground, reach, tries, slots, beside, cars)
             chosen = actors.select(rng, cands, occ, inside, outside, cfg.place_radius, reach, obstacles)
             _build(solids, rng, label, chosen)
             boxes.append(chosen.boxes)
@@ -160,12 +162,13 @@ def _candidates(
     tries: int,
     slots: np.ndarray,
     beside: np.ndarray,
+    vehicles: np.ndarray,
 ) -> actors.Candidates:
     if label == VEHICLE:
         lanes = actors.vehicle_candidates(rng, roads, ground, reach)
         return actors.Candidates.join([lanes, actors.driveway_candidates(rng, slots)])
     if label == PEDESTRIAN:
-        return actors.pedestrian_candidates(rng, roads, ground, reach, tries, beside)
+        return actors.pedestrian_candidates(rng, roads, ground, reach, tries, beside, vehicles)
     return actors.cyclist_candidates(rng, roads, ground, reach, tries)
 
 
