@@ -184,8 +184,8 @@ def _behind(
     rng: np.random.Generator, vehicles: np.ndarray, ground: Ground
 ) -> tuple[np.ndarray, float, float]:
     """A spot behind one of `vehicles` (V, 7) as the sensor sees it: on the line from the sensor through the
-    vehicle's centre, BEHIND's distance beyond its far side. Returns position (2,), ground z and the
-    vehicle's heading (along which a group lines up)."""
+    vehicle's centre, 0.4-2.4 m beyond its far side. Returns position (2,), ground z and the vehicle's
+    heading (along which a group lines up)."""
     x, y, _, length, width, _, yaw = vehicles[int(rng.integers(len(vehicles)))]
     dist = math.hypot(x, y)
     ux, uy = x / dist, y / dist
