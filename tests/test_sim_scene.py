@@ -27,6 +27,7 @@ from lidar.sim.parts import (
 from lidar.sim.raycast import Rays, SolidList, cast_solids
 from lidar.sim.scene import PEDESTRIAN, VEHICLE, make_scene
 from lidar.sim.vegetation import hedge
+from lidar.types import points_in_boxes
 
 HEIGHT = 1.73
 RAYS = Rays.spinning(1000, sensor_spec(Sensor.HDL64E).elevations_deg)
@@ -136,16 +137,9 @@ def _behind_vehicles(seeds: range) -> float:
         for ped in scene.boxes[scene.labels == PEDESTRIAN]:
             legs = np.array([ped[0], ped[1], ped[2] - ped[5] / 2 + 0.3])
             sight = np.linspace(0.05, 0.95, 40)[:, None] * legs  # (40, 3) points on the line
-            behind += any(_inside(sight, car).any() for car in cars)
+            behind += bool(points_in_boxes(sight, cars).any())
             n += 1
     return behind / n
-
-
-def _inside(points: np.ndarray, box: np.ndarray) -> np.ndarray:
-    c, s = math.cos(box[6]), math.sin(box[6])
-    d = points[:, :2] - box[:2]
-    u, v = d[:, 0] * c + d[:, 1] * s, -d[:, 0] * s + d[:, 1] * c
-    return (abs(u) <= box[3] / 2) & (abs(v) <= box[4] / 2) & (abs(points[:, 2] - box[2]) <= box[5] / 2)
 
 
 def test_pedestrians_stand_behind_vehicles(monkeypatch):

@@ -230,8 +230,8 @@ def format_tables(rows: list[Stats]) -> str:
     head = ["source", "scans"]
     t1 = [[*head, "points/scan", *[f"r {e} m" for e in _edges(RANGE_EDGES)]]]
     t2 = [[*head, *[f"h {e} m" for e in _edges(HEIGHT_EDGES)]]]
-    t3 = [[*head, "median", "p90", *[f"i {e}" for e in _edges(INTENSITY_EDGES)], "clutter", "clutter est."]]
-    t3[0] += ["pedestrians seen", "legs hidden"]
+    lit_head = ["median", "p90", *[f"i {e}" for e in _edges(INTENSITY_EDGES)]]
+    t3 = [[*head, *lit_head, "clutter", "clutter est.", "pedestrians seen", "legs hidden"]]
     for s in rows:
         first = [s.name, str(s.scans)]
         t1.append([*first, f"{s.points:,.0f}", *_cells(s.range_share)])
