@@ -20,6 +20,9 @@
 #   train    the shipped model's next training phase on the simulator, 8 minutes, into OUTDIR/train;
 #            TRAIN_FROM=<that folder, carried back> resumes it (TRAIN_STEPS 20000 of batch TRAIN_BATCH 8
 #            at TRAIN_LR 1e-3, TRAIN_WORKERS 12 simulator processes, TRAIN_DEVICE cuda)         ~9 min
+#   refine   the default's two refiner stages (scripts/train_default.sh's recipe: REFINE_SCANS 800 of
+#            streams 28 and 29) on the host's CPUs, fitted to REFINE_FROM (OUTDIR/train/model.pt) with
+#            REFINE_WORKERS (16) processes reading the scans, into OUTDIR/refined.pt      ~5 min (not yet timed)
 # SERVE_CONFIG (tiny), SERVE_MAX_BATCH (32), SERVE_DEVICE (cuda), SERVE_ENGINE (graph), SERVE_PRECISION
 # (bf16) and SWEEP (1,4,16,64) change the server stage, e.g. to try it on a CPU.
 # Every step has a time limit; OUTDIR/steps.txt says how each ended, and the table comes last.
@@ -132,6 +135,14 @@ for stage in "$@"; do
             --init "${TRAIN_INIT:-default}" --out "$run" --max-minutes "${TRAIN_MINUTES:-8}" --no-progress \
             "${resume[@]}"
         tail -2 "$run/metrics.csv"
+        ;;
+    refine)
+        recipe=(--seed 28 --seed 29 --scans "${REFINE_SCANS:-800}" --epochs 8 --points 64 --fit-every-cell cyclist
+            --workers "${REFINE_WORKERS:-16}")
+        step refine1 290 "$py" -m phim train-refiner --checkpoint "${REFINE_FROM:-$out/train/model.pt}" \
+            --out "$out/refined1.pt" --stages 1 "${recipe[@]}"
+        step refine2 290 "$py" -m phim train-refiner --checkpoint "$out/refined1.pt" --keep --stages 2 \
+            --out "$out/refined.pt" "${recipe[@]}"
         ;;
     *) echo "unknown stage $stage" >&2 && exit 2 ;;
     esac

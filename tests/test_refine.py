@@ -53,6 +53,7 @@ from model.layers.refine import (
 from model.sectors import split_turn
 from model.stream import StreamingDetector
 from model.train.refine import Proposals, fit, scan_proposals
+from model.train.refine_cli import scan_runs
 
 CFG = RefineConfig(points=16)
 
@@ -397,6 +398,29 @@ def test_train_refiner_writes_the_frozen_detector_with_a_refiner_and_train_start
     assert plain.keys() == base.keys() and all(torch.equal(plain[k], base[k]) for k in plain)  # frozen
     state = init_weights(out, dataclasses.replace(refined.cfg, refine=None))
     assert not any(k.startswith("refiner.") for k in state)
+
+
+def test_more_workers_split_each_streams_scans_into_runs_and_fit_the_same_refiner(tmp_path: Path):
+    """--workers 2 on one stream reads its scans in two runs: the same boxes in the same order, so the
+    same refiner, bit for bit."""
+    assert scan_runs(5, 2) == [(0, 2), (2, 3)] and scan_runs(2, 4) == [(0, 1), (1, 1)]
+    assert scan_runs(3, 0) == [(0, 3)]  # 0 workers: one run a stream
+    cmd = [sys.executable, "-m", "phim", "train-refiner", "--seed", "5", "--points", "8", "--scans", "3"]
+    cmd += ["--epochs", "1", "--threads", "1", "--stages", "1"]
+    runs = {
+        w: subprocess.run(
+            [*cmd, "--workers", w, "--out", str(tmp_path / f"{w}.pt")],
+            check=True,
+            capture_output=True,
+            text=True,
+        )
+        for w in ("1", "2")
+    }
+    boxes = {w: re.search(r"stage 1: (\d+) boxes", r.stdout).group(1) for w, r in runs.items()}
+    assert boxes["1"] == boxes["2"] and int(boxes["1"]) > 10, boxes
+    one, two = (read_checkpoint(tmp_path / f"{w}.pt")["state_dict"] for w in ("1", "2"))
+    assert any(k.startswith("refiner.") for k in one)
+    assert one.keys() == two.keys() and all(torch.equal(one[k], two[k]) for k in one)
 
 
 @pytest.fixture(scope="module")

@@ -99,19 +99,19 @@ def proposals(
     model: PHiM,
     cfg: RefineConfig,
     source: Callable[[int], LabeledScan],
-    scans: int,
+    scans: range,
     refined: int = 0,
     every_cell: Sequence[bool] = (),
 ) -> Proposals:
-    """`scan_proposals` of scans source(0) .. source(scans - 1)."""
+    """`scan_proposals` of scans source(i) for i in `scans`, in order."""
     model.eval()
     t0 = time.perf_counter()
     parts = []
-    for i in range(scans):
+    for i in scans:
         parts.append(scan_proposals(model, cfg, source(i), refined, every_cell))
-        if (i + 1) % 100 == 0:
+        if len(parts) % 100 == 0:
             boxes = sum(map(len, parts))
-            log.info("proposals: %d scans, %d boxes, %.0f s", i + 1, boxes, time.perf_counter() - t0)
+            log.info("proposals: %d scans, %d boxes, %.0f s", len(parts), boxes, time.perf_counter() - t0)
     return Proposals.cat(parts)
 
 

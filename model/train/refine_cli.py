@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
@@ -21,9 +22,10 @@ from model.train.refine import MATCH_IOU, Proposals
 if TYPE_CHECKING:
     from model.detector import PHiM
 
-# one proposal worker's task: checkpoint, refiner config, data, class map, sim stream, scans, per class
-# whether every heatmap cell is a box, and how many of the checkpoint's refiner stages refine the boxes first
-Job = tuple[Path, RefineConfig, str, ClassMap, int, int, tuple[bool, ...], int]
+# one proposal worker's task: checkpoint, refiner config, data, class map, sim stream, its first scan and
+# how many, per class whether every heatmap cell is a box, and how many of the checkpoint's refiner stages
+# refine the boxes first
+Job = tuple[Path, RefineConfig, str, ClassMap, int, int, int, tuple[bool, ...], int]
 
 
 @click.command()
@@ -87,6 +89,14 @@ Job = tuple[Path, RefineConfig, str, ClassMap, int, int, tuple[bool, ...], int]
     "refiner reads it at work (RefineConfig.every_cell). Default: none, the heatmaps' 3 x 3 local maxima of "
     "every class.",
 )
+@click.option(
+    "--workers",
+    type=click.IntRange(0),
+    default=0,
+    show_default=True,
+    help="Processes that read the scans for a stage's boxes (0: one per stream). More than the streams split "
+    "each stream's scans into runs: the same boxes in the same order, so the same refiner.",
+)
 @threads_option
 def train_refiner_cmd(
     checkpoint: str,
@@ -103,6 +113,7 @@ def train_refiner_cmd(
     stages: int,
     keep: bool,
     fit_every_cell: tuple[str, ...],
+    workers: int,
     threads: int,
 ) -> None:
     """Train the box refiner on the detector's own boxes (the detector is frozen): on simulated scans, or on
@@ -140,7 +151,10 @@ def train_refiner_cmd(
         }
     }
     cells = tuple(name in fit_every_cell for name in CLASS_NAMES)
-    jobs = [(path, refine, data, class_map, s, scans, cells, 0) for s in seeds]
+    runs = scan_runs(scans, -(-workers // len(seeds)))  # ceil: every worker has a run
+    jobs = [
+        (path, refine, data, class_map, s, first, count, cells, 0) for s in seeds for first, count in runs
+    ]
     click.echo(f"the refiner learns from the boxes of {len(seeds)} x {scans} scans of {data}")
     _fit_stages(model, kept, jobs, out, meta, epochs, lr)
     click.echo(f"model: {out}")
@@ -159,7 +173,7 @@ def _fit_stages(
     for k, stage in enumerate(model.refiner.chain()):
         if k < kept:
             continue
-        stage_jobs = [(out if k else job[0], *job[1:7], k) for job in jobs]
+        stage_jobs = [(out if k else job[0], *job[1:8], k) for job in jobs]
         with ProcessPoolExecutor(len(jobs), mp_context=multiprocessing.get_context("spawn")) as pool:
             boxes = Proposals.cat(list(pool.map(_stream_proposals, stage_jobs)))
         on_objects = int((boxes.iou >= MATCH_IOU).sum())
@@ -188,14 +202,22 @@ def _kept_stages(have: RefineConfig | None, want: RefineConfig) -> int:
 
 def _stream_proposals(job: Job) -> Proposals:
     """In a worker process of one thread: the detector's proposals on `scans` scans of `data` (the simulator:
-    stream `seed`), refined by the checkpoint's first `refined` refiner stages."""
+    stream `seed`) from scan `first` on, refined by the checkpoint's first `refined` refiner stages."""
     import torch
 
     from model.checkpoint import load_checkpoint
     from model.train.refine import proposals
 
-    path, cfg, data, classes, seed, scans, every_cell, refined = job
+    path, cfg, data, classes, seed, first, scans, every_cell, refined = job
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     source = scan_source(data, seed, shuffle=False, classes=classes)
-    return proposals(load_checkpoint(path), cfg, source, scans, refined, every_cell)
+    return proposals(load_checkpoint(path), cfg, source, range(first, first + scans), refined, every_cell)
+
+
+def scan_runs(scans: int, parts: int) -> list[tuple[int, int]]:
+    """Scans 0 .. scans - 1 cut into at most `parts` (at least one) contiguous runs of near-equal length,
+    in order: (first, count) each."""
+    parts = max(parts, 1)
+    bounds = [scans * i // parts for i in range(parts + 1)]
+    return [(a, b - a) for a, b in itertools.pairwise(bounds) if b > a]
