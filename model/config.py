@@ -199,6 +199,10 @@ class RefineConfig:
     every_cell: tuple[bool, ...] = (False, True, True)
     # per class, BEV rotated IoU: NMS over the last stage's boxes (the boxes of one object's cells meet)
     nms_iou: tuple[float, ...] = (0.75, 0.1, 0.55)
+    # per class: at work each box is also read as its mirror image (y -> -y in its frame: the object seen
+    # from its other side) and the two readings averaged; on the simulator pedestrians and cyclists gain
+    # from it and vehicles do not (docs/model-card.md), so their boxes are not read twice
+    mirror: tuple[bool, ...] = (False, True, True)
 
     def __post_init__(self) -> None:
         if self.stages < 1:
@@ -251,8 +255,8 @@ class PHiMConfig:
         if self.buffer_sectors < 0:
             raise ValueError("buffer_sectors must be >= 0")
         n, r = len(self.head.class_names), self.refine
-        if r is not None and not len(r.grow) == len(r.every_cell) == len(r.nms_iou) == n:
-            raise ValueError("refine.grow, refine.every_cell and refine.nms_iou need one value per class")
+        if r is not None and not len(r.grow) == len(r.every_cell) == len(r.nms_iou) == len(r.mirror) == n:
+            raise ValueError("refine.grow, every_cell, nms_iou and mirror need one value per class")
 
     @property
     def every_cell(self) -> tuple[bool, ...]:
@@ -302,13 +306,19 @@ def _default_sector_voxels(name: str) -> int:
 
 def _refine_config(d: dict | None, classes: int) -> RefineConfig | None:
     """A checkpoint's refiner config; one saved before `context`, `flip` or `stages` existed had neither
-    part and one stage, one saved before `grow` was per class grew every class's boxes alike, and one saved
-    before `every_cell` read only the local maxima."""
+    part and one stage, one saved before `grow` was per class grew every class's boxes alike, one saved
+    before `every_cell` read only the local maxima, and one saved before `mirror` read each box once."""
     if not d:
         return None
     grow = d.get("grow", RefineConfig.grow)
     per_class = [grow] * classes if grow and not isinstance(grow[0], list | tuple) else grow
-    old = {"context": False, "flip": False, "stages": 1, "every_cell": (False,) * classes}
+    old = {
+        "context": False,
+        "flip": False,
+        "stages": 1,
+        "every_cell": (False,) * classes,
+        "mirror": (False,) * classes,
+    }
     return RefineConfig(**{**old, **_tuples(d), "grow": tuple(tuple(g) for g in per_class)})
 
 

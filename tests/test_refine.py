@@ -269,14 +269,15 @@ def test_a_cascade_chains_its_stages_and_the_first_is_drawn_as_a_single_stage():
 def test_a_later_stage_learns_from_the_boxes_the_stages_before_it_refined(shipped):
     """`scan_proposals(refined=k)`: the detector's boxes (its heatmaps' local maxima, and every cell of the
     classes its `every_cell` argument names, whatever the model's config says) as the first k stages return
-    them (re-sorted by their refined score, no NMS), with those boxes' points; k = 0: the detector's own."""
+    them reading each box once (re-sorted by their refined score, no NMS), with those boxes' points; k = 0:
+    the detector's own."""
     scan = scan_source("sim", 5, shuffle=False)(0)
     sectors = scan_sectors(scan, shipped.cfg.vfe.point_features, shipped.cfg.sectors_per_turn)
     assert any(shipped.cfg.every_cell)
     with torch.inference_mode():
         _, enc = shipped.forward_turn(sectors)
         det = decode(shipped.predict([enc.sectors]), shipped.cfg.head, shipped.cfg.bev)[0]
-        once = refine_many(shipped.refiner, [det], [torch.cat(sectors)], stages=1)[0]
+        once = refine_many(shipped.refiner, [det], [torch.cat(sectors)], stages=1, mirror=False)[0]
         cells = decode(shipped.predict([enc.sectors]), shipped.cfg.head, shipped.cfg.bev, (False, True, True))
     raw = scan_proposals(shipped, shipped.refiner.cfg, scan)
     later = scan_proposals(shipped, shipped.refiner.cfg, scan, refined=1)
@@ -304,12 +305,17 @@ def test_the_stream_buffers_its_last_sectors_points_and_a_model_without_refiner_
 
 def _refine_plain(refiner, det: Detections, points: torch.Tensor) -> Detections:
     """The refiner's stages in turn on one prediction, its boxes looked up every point against every box,
-    then the class NMS: the twin of `refine_many`'s per-stream lookups and batched forward per stage."""
+    each box of a class `mirror` names read mirrored too, then the class NMS: the twin of `refine_many`'s
+    per-stream lookups and batched forward per stage."""
     boxes, scores, a = det.boxes, det.scores, refiner.cfg.iou_weight
     for stage in refiner.chain():
         grown = grown_boxes(boxes, det.labels, stage.cfg)
         local, counts = box_points_reference(points, grown, stage.cfg.points)
         out = stage(local, counts, boxes, scores, det.labels)
+        if any(stage.cfg.mirror):  # every box read mirrored too, the classes `mirror` names averaged with it
+            seen = stage(local * torch.tensor([1.0, -1.0, 1.0]), counts, boxes, scores, det.labels)
+            seen[:, [1, 6]] *= -1
+            out = torch.where(torch.tensor(stage.cfg.mirror)[det.labels][:, None], (out + seen) / 2, out)
         scores = det.scores.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)  # the detector's and this IoU
         boxes = apply_residual(boxes, out)
         if stage.cfg.flip:

@@ -13,6 +13,8 @@ direction comes from 0.8 m BEV cells; the points can tell a car's front from its
 `RefineConfig.stages` > 1 the refiners run in turn (a cascade: each reads the points around the boxes the
 one before it refined, with that one's score). The refined score is score^(1 - a) * iou^a
 (`RefineConfig.iou_weight`), as the head's IoU rectification: the detector's score and the last stage's IoU.
+At work the boxes of the classes `RefineConfig.mirror` names are read twice, as they are and as their mirror
+images (y -> -y in the box's frame), and each stage's two outputs averaged (`mirrored_mean`).
 
 `box_points` finds the points inside the grown boxes (`grown_boxes`) through a grid index of 1 m cells: a
 numba kernel on the CPU (`model.ops.box_points_numba`), tensor ops elsewhere (`box_points_torch`);
@@ -235,14 +237,19 @@ def refine(refiner: BoxRefiner, det: Detections, points: Tensor) -> Detections:
 
 @torch.no_grad()
 def refine_many(
-    refiner: BoxRefiner, dets: list[Detections], points: list[Tensor], stages: int | None = None
+    refiner: BoxRefiner,
+    dets: list[Detections],
+    points: list[Tensor],
+    stages: int | None = None,
+    mirror: bool = True,
 ) -> list[Detections]:
     """Several predictions (a batch's streams), each with the raw points (N_i, >=3) of the sectors it
     covers -> each refined as `refine` would, by the first `stages` stages of the chain (None: all). Per
     stage the points are looked up where they lie (the host, in a server: no copy of them, no wait on a
     device), then one PointNet forward runs over every box of the batch on the refiner's device (on a CPU
     in chunks of `_CPU_CHUNK` boxes: 1,040 boxes took 1.5-1.75x as long in one forward as in chunks of
-    160)."""
+    160), and with `mirror` one more over the boxes of the classes `RefineConfig.mirror` names, read as
+    their mirror images (`mirrored_mean`; mirror=False: each box read once, as the stages are fitted)."""
     dev = next(refiner.parameters()).device
     sizes = [len(d) for d in dets]
     if sum(sizes) == 0:
@@ -261,6 +268,8 @@ def refine_many(
         local = torch.cat([lc[0] for lc in looked]).to(dev)  # (T, P, 3)
         counts = torch.cat([lc[1] for lc in looked]).to(dev)  # (T,)
         out = refiner_forward(stage, local, counts, boxes, scores, labels)  # (T, 8 or 9)
+        if mirror and any(cfg.mirror):
+            out = mirrored_mean(stage, out, local, counts, boxes, scores, labels)
         boxes = apply_output(boxes, out, cfg)
         a = cfg.iou_weight
         scores = detected.pow(1 - a) * torch.sigmoid(out[:, 7]).pow(a)
@@ -279,6 +288,31 @@ def refiner_forward(
         return refiner(local, counts, boxes, scores, labels)
     parts = zip(*(x.split(_CPU_CHUNK) for x in (local, counts, boxes, scores, labels)), strict=True)
     return torch.cat([refiner(*part) for part in parts])
+
+
+def mirrored_mean(
+    refiner: BoxRefiner,
+    out: Tensor,
+    local: Tensor,
+    counts: Tensor,
+    boxes: Tensor,
+    scores: Tensor,
+    labels: Tensor,
+) -> Tensor:
+    """`refiner_forward`'s output out (T, 8 or 9) on the inputs that follow it -> the same, where a box's
+    class is one `RefineConfig.mirror` names averaged with the output on the box's mirror image: its points
+    with y -> -y in its frame, an object as seen from its other side, and that output's dy and dyaw (the
+    values odd in y) turned back."""
+    which = torch.tensor(refiner.cfg.mirror, device=labels.device)[labels].nonzero()[:, 0]  # (M,)
+    if which.numel() == 0:
+        return out
+    y = torch.tensor([1.0, -1.0, 1.0], dtype=local.dtype, device=local.device)
+    seen = refiner_forward(
+        refiner, local[which] * y, counts[which], boxes[which], scores[which], labels[which]
+    )
+    odd = torch.ones(out.shape[1], dtype=out.dtype, device=out.device)
+    odd[[1, 6]] = -1.0
+    return out.index_put((which,), (out[which] + seen * odd) / 2)
 
 
 def box_points_many(points: list[Tensor], boxes: list[Tensor], p: int) -> list[tuple[Tensor, Tensor]]:

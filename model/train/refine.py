@@ -82,7 +82,7 @@ def scan_proposals(
     det = decode(model.predict([enc.sectors]), model.cfg.head, model.cfg.bev, every_cell)[0]
     points = torch.cat(sectors)
     if refined and model.refiner is not None:
-        det = refine_many(model.refiner, [det], [points], stages=refined)[0]
+        det = refine_many(model.refiner, [det], [points], stages=refined, mirror=False)[0]
     local, counts = box_points(points, grown_boxes(det.boxes, det.labels, cfg), cfg.points)
     gt = scan.gt
     iou = np.zeros((len(det), len(gt)), np.float32)
