@@ -303,16 +303,15 @@ def mirrored_mean(
     class is one `RefineConfig.mirror` names averaged with the output on the box's mirror image: its points
     with y -> -y in its frame, an object as seen from its other side, and that output's dy and dyaw (the
     values odd in y) turned back."""
-    which = torch.tensor(refiner.cfg.mirror, device=labels.device)[labels].nonzero()[:, 0]  # (M,)
+    which = labels.new_tensor(refiner.cfg.mirror, dtype=torch.bool)[labels].nonzero()[:, 0]  # (M,)
     if which.numel() == 0:
         return out
-    y = torch.tensor([1.0, -1.0, 1.0], dtype=local.dtype, device=local.device)
+    y = local.new_tensor([1.0, -1.0, 1.0])
     seen = refiner_forward(
         refiner, local[which] * y, counts[which], boxes[which], scores[which], labels[which]
     )
-    odd = torch.ones(out.shape[1], dtype=out.dtype, device=out.device)
-    odd[[1, 6]] = -1.0
-    return out.index_put((which,), (out[which] + seen * odd) / 2)
+    seen[:, [1, 6]] = -seen[:, [1, 6]]  # dy, dyaw back in the box's own frame
+    return out.index_put((which,), (out[which] + seen) / 2)
 
 
 def box_points_many(points: list[Tensor], boxes: list[Tensor], p: int) -> list[tuple[Tensor, Tensor]]:
